@@ -1,0 +1,122 @@
+"""Resolved configuration: frozen dataclasses built from ``defaults.toml``.
+
+Every tunable of kdtrace lives in ``kdtrace/defaults.toml``; this module turns that
+file (optionally overlaid with a user TOML file) into immutable dataclasses, so a
+result file can record exactly the configuration that produced it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import tomllib
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+DEFAULTS_PATH = Path(__file__).with_name("defaults.toml")
+
+
+@dataclass(frozen=True)
+class KDTreeConfig:
+    """Build parameters of both SAH KD-trees (paper §2, eq. 1 and Terminate).
+
+    Attributes
+    ----------
+    traversal_cost : float
+        K_T, cost of one traversal step (arbitrary unit).
+    intersection_cost : float
+        K_I, cost of one ray-triangle test (same unit).
+    min_leaf_size : int
+        Nodes with this many triangles or fewer are not split.
+    depth_base, depth_log_factor : float
+        Depth limit ``depth_base + depth_log_factor * log2(N)``.
+    axis_selection : str
+        ``"all"`` (best SAH plane over the three axes) or ``"cycle"`` (paper: depth % 3).
+    empty_bonus : float
+        Fraction by which a split that leaves one child empty is favoured.
+    """
+
+    traversal_cost: float = 1.0
+    intersection_cost: float = 1.5
+    min_leaf_size: int = 2
+    depth_base: float = 8.0
+    depth_log_factor: float = 1.3
+    axis_selection: str = "all"
+    empty_bonus: float = 0.2
+
+    def __post_init__(self) -> None:
+        if self.traversal_cost < 0 or self.intersection_cost <= 0:
+            raise ValueError("kdtree costs must be K_T >= 0 and K_I > 0")
+        if self.min_leaf_size < 1:
+            raise ValueError("kdtree.min_leaf_size must be >= 1")
+        if self.axis_selection not in ("all", "cycle"):
+            raise ValueError("kdtree.axis_selection must be 'all' or 'cycle'")
+        if not 0.0 <= self.empty_bonus < 1.0:
+            raise ValueError("kdtree.empty_bonus must be in [0, 1)")
+
+
+@dataclass(frozen=True)
+class CacheConfig:
+    """On-disk cache of content-hashed artefacts (trees, references, models)."""
+
+    directory: str = ".cache/kdtrace"
+
+
+@dataclass(frozen=True)
+class EmbreeCheckConfig:
+    """Settings of the Embree agreement check (rays per kind, RNG seed)."""
+
+    rays_per_kind: int = 1_000_000
+    seed: int = 20261122
+
+
+@dataclass(frozen=True)
+class Config:
+    """The whole resolved configuration."""
+
+    kdtree: KDTreeConfig = KDTreeConfig()
+    cache: CacheConfig = CacheConfig()
+    embree_check: EmbreeCheckConfig = EmbreeCheckConfig()
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain nested dict, for recording in result files."""
+        return dataclasses.asdict(self)
+
+
+_SECTIONS = {
+    "kdtree": KDTreeConfig,
+    "cache": CacheConfig,
+    "embree_check": EmbreeCheckConfig,
+}
+
+
+def _merge(base: dict[str, Any], overlay: dict[str, Any], origin: str) -> dict[str, Any]:
+    merged = {key: dict(value) for key, value in base.items()}
+    for section, values in overlay.items():
+        if section not in _SECTIONS:
+            raise ValueError(f"{origin}: unknown section [{section}]; known: {sorted(_SECTIONS)}")
+        known = {f.name for f in dataclasses.fields(_SECTIONS[section])}
+        unknown = set(values) - known
+        if unknown:
+            raise ValueError(f"{origin}: unknown keys in [{section}]: {sorted(unknown)}; known: {sorted(known)}")
+        merged.setdefault(section, {}).update(values)
+    return merged
+
+
+def load_config(path: str | Path | None = None) -> Config:
+    """Load the defaults, overlaid with the TOML file at ``path`` when given.
+
+    Raises
+    ------
+    ValueError
+        On unknown sections or keys, or values out of range.
+    """
+    with open(DEFAULTS_PATH, "rb") as handle:
+        values = tomllib.load(handle)
+    if path is not None:
+        with open(path, "rb") as handle:
+            values = _merge(values, tomllib.load(handle), str(path))
+    return Config(**{name: cls(**values.get(name, {})) for name, cls in _SECTIONS.items()})
+
+
+DEFAULT_CONFIG = load_config()
