@@ -34,6 +34,9 @@ class KDTreeConfig:
         ``"all"`` (best SAH plane over the three axes) or ``"cycle"`` (paper: depth % 3).
     empty_bonus : float
         Fraction by which a split that leaves one child empty is favoured.
+    clip_triangles : bool
+        Classify triangles by exact overlap with each node (perfect splits) instead of
+        by their bounding boxes (the paper's naive build).
     """
 
     traversal_cost: float = 1.0
@@ -43,6 +46,7 @@ class KDTreeConfig:
     depth_log_factor: float = 1.3
     axis_selection: str = "all"
     empty_bonus: float = 0.2
+    clip_triangles: bool = False
 
     def __post_init__(self) -> None:
         if self.traversal_cost < 0 or self.intersection_cost <= 0:

@@ -1,0 +1,248 @@
+"""The naive and local-branch SAH KD-trees: build, cache, statistics and ray queries.
+
+``build_kdtree(scene, variant)`` returns a :class:`KDTree` whose ``intersect`` and
+``occluded`` run numba kernels (``kdtrace._kdtree_build``, ``kdtrace._kdtree_traverse``)
+over flat arrays. Both variants share the same split decisions: the local-branch tree
+is the naive tree with Algorithm 3's pull-up applied, so Table 1 compares like with like.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+import warnings
+from dataclasses import dataclass
+from typing import Literal
+
+import numba
+import numpy as np
+
+from kdtrace import _kdtree_build as build_kernels
+from kdtrace import _kdtree_traverse as traverse_kernels
+from kdtrace.cache import cache_root, content_key, load_npz, save_npz
+from kdtrace.config import DEFAULT_CONFIG, KDTreeConfig
+from kdtrace.scene import Scene
+
+Variant = Literal["naive", "local"]
+VARIANTS: tuple[str, ...] = ("naive", "local")
+BUILDER_VERSION = 1
+_TREE_ARRAYS = ("node_meta", "node_split", "node_start", "node_count", "refs")
+
+
+@dataclass
+class TraceCounters:
+    """Per-ray work counters of the last query (nodes visited, triangle tests)."""
+
+    nodes_visited: np.ndarray
+    triangle_tests: np.ndarray
+
+    def mean(self) -> dict[str, float]:
+        return {
+            "nodes_per_ray": float(self.nodes_visited.mean()) if self.nodes_visited.size else 0.0,
+            "tests_per_ray": float(self.triangle_tests.mean()) if self.triangle_tests.size else 0.0,
+        }
+
+
+class KDTree:
+    """A built KD-tree over one scene's triangles.
+
+    Attributes
+    ----------
+    variant : {"naive", "local"}
+    stats : dict
+        nodes, leaves, empty_leaves, max_depth, triangle_references (leaf + interior),
+        leaf_references, interior_references, sah_cost, tree_bytes, build_seconds,
+        zero_area_triangles, cache_hit.
+    last_counters : TraceCounters or None
+        Work counters of the most recent query.
+    """
+
+    def __init__(self, scene: Scene, variant: str, arrays: dict[str, np.ndarray], stats: dict):
+        self.variant = variant
+        self.stats = stats
+        self.node_meta = arrays["node_meta"]
+        self.node_split = arrays["node_split"]
+        self.node_start = arrays["node_start"]
+        self.node_count = arrays["node_count"]
+        self.refs = arrays["refs"]
+        lo, hi = scene.bounds
+        self.box = np.concatenate([lo, hi])
+        corners = scene.vertices.astype(np.float64)[scene.triangles]
+        self.v0 = np.ascontiguousarray(corners[:, 0])
+        self.e1 = np.ascontiguousarray(corners[:, 1] - corners[:, 0])
+        self.e2 = np.ascontiguousarray(corners[:, 2] - corners[:, 0])
+        self.last_counters: TraceCounters | None = None
+
+    def __repr__(self) -> str:
+        return f"KDTree(variant={self.variant!r}, nodes={self.stats['nodes']}, references={self.stats['triangle_references']})"
+
+    def _trace(self, origins, directions, tmin, tmax, any_hit):
+        origins, directions, tmin, tmax = validate_rays(origins, directions, tmin, tmax)
+        n = len(origins)
+        out_t = np.empty(n)
+        out_tri = np.empty(n, np.int32)
+        out_u = np.empty(n)
+        out_v = np.empty(n)
+        visited = np.empty(n, np.int32)
+        tests = np.empty(n, np.int32)
+        # Several chunks per thread balance the load; a chunk owns one traversal stack.
+        n_chunks = max(1, min(n, 16 * numba.get_num_threads()))
+        traverse_kernels.trace_batch(
+            self.node_meta, self.node_split, self.node_start, self.node_count, self.refs,
+            self.box, self.v0, self.e1, self.e2, origins, directions, tmin, tmax, any_hit,
+            n_chunks, out_t, out_tri, out_u, out_v, visited, tests,
+        )
+        self.last_counters = TraceCounters(visited, tests)
+        return out_t, out_tri, out_u, out_v
+
+    def intersect(self, origins, directions, tmin=0.0, tmax=np.inf):
+        """Closest hit of every ray ``o + t d`` with ``tmin < t < tmax``.
+
+        Parameters
+        ----------
+        origins, directions : (N, 3) float arrays
+            Ray origins and directions (scene units; directions need not be unit).
+        tmin, tmax : float or (N,) array
+            Accepted range of the ray parameter t.
+
+        Returns
+        -------
+        t : (N,) float64, inf on a miss
+        tri : (N,) int32, index into ``scene.triangles``, -1 on a miss
+        u, v : (N,) float64, barycentric weights of vertices 1 and 2
+        """
+        return self._trace(origins, directions, tmin, tmax, False)
+
+    def occluded(self, origins, directions, tmax, tmin=0.0):
+        """True for rays that hit anything with ``tmin < t < tmax`` (shadow rays)."""
+        t, _, _, _ = self._trace(origins, directions, tmin, tmax, True)
+        return np.isfinite(t)
+
+
+def validate_rays(origins, directions, tmin=0.0, tmax=np.inf):
+    """Check and convert a ray batch to contiguous float64 arrays.
+
+    Raises
+    ------
+    ValueError
+        Wrong shapes, NaN/inf origins or directions, zero directions, or tmin > tmax.
+    """
+    origins = np.ascontiguousarray(origins, dtype=np.float64)
+    directions = np.ascontiguousarray(directions, dtype=np.float64)
+    if origins.ndim != 2 or origins.shape[1] != 3:
+        raise ValueError(f"origins must have shape (N, 3), got {origins.shape}")
+    if directions.shape != origins.shape:
+        raise ValueError(f"directions must have the shape of origins {origins.shape}, got {directions.shape}")
+    if not np.all(np.isfinite(origins)) or not np.all(np.isfinite(directions)):
+        raise ValueError("ray origins and directions must be finite (no NaN or inf)")
+    if np.any(~directions.any(axis=1)):
+        raise ValueError("ray directions must be non-zero")
+    n = len(origins)
+    tmin = np.ascontiguousarray(np.broadcast_to(np.asarray(tmin, dtype=np.float64), (n,)))
+    tmax = np.ascontiguousarray(np.broadcast_to(np.asarray(tmax, dtype=np.float64), (n,)))
+    if np.any(np.isnan(tmin)) or np.any(np.isnan(tmax)) or np.any(tmin > tmax):
+        raise ValueError("tmin and tmax must be ordered numbers (tmin <= tmax)")
+    return origins, directions, tmin, tmax
+
+
+def max_depth_for(triangles: int, config: KDTreeConfig) -> int:
+    """Depth limit ``depth_base + depth_log_factor * log2(N)``, capped below the stack size."""
+    depth = config.depth_base + config.depth_log_factor * math.log2(max(triangles, 1))
+    return int(min(round(depth), traverse_kernels.STACK_SIZE - 4))
+
+
+def _statistics(variant, arrays, node_area, depth_reached, config, build_seconds, zero_area):
+    meta = arrays["node_meta"]
+    counts = arrays["node_count"]
+    is_leaf = meta == build_kernels.LEAF
+    root_area = node_area[0] if node_area[0] > 0 else 1.0
+    sah = (
+        config.traversal_cost * node_area[~is_leaf].sum()
+        + config.intersection_cost * (node_area * counts).sum()
+    ) / root_area
+    return {
+        "variant": variant,
+        "nodes": int(len(meta)),
+        "leaves": int(is_leaf.sum()),
+        "empty_leaves": int((is_leaf & (counts == 0)).sum()),
+        "max_depth": int(depth_reached),
+        "triangle_references": int(counts.sum()),
+        "leaf_references": int(counts[is_leaf].sum()),
+        "interior_references": int(counts[~is_leaf].sum()),
+        "sah_cost": float(sah),
+        "tree_bytes": int(sum(arrays[name].nbytes for name in _TREE_ARRAYS)),
+        "build_seconds": float(build_seconds),
+        "zero_area_triangles": int(zero_area),
+    }
+
+
+def _build_arrays(scene: Scene, variant: str, config: KDTreeConfig):
+    degenerate = scene.degenerate_mask()
+    triangle_ids = np.flatnonzero(~degenerate).astype(np.int32)
+    if len(triangle_ids) == 0:
+        raise ValueError(f"scene {scene.name!r}: every triangle has zero area; nothing to build a tree of")
+    corners = scene.vertices.astype(np.float64)[scene.triangles]
+    lo, hi = scene.bounds
+    started = time.perf_counter()
+    meta, split, start, count, refs, node_area, depth_reached = build_kernels.build_naive(
+        np.ascontiguousarray(corners[:, 0]), np.ascontiguousarray(corners[:, 1]),
+        np.ascontiguousarray(corners[:, 2]), triangle_ids, lo, hi,
+        config.traversal_cost, config.intersection_cost, config.min_leaf_size,
+        max_depth_for(len(triangle_ids), config), config.axis_selection == "cycle", config.empty_bonus,
+        config.clip_triangles,
+    )
+    if variant == "local":
+        start, count, refs = build_kernels.pull_up(meta, start, count, refs)
+    seconds = time.perf_counter() - started
+    arrays = {"node_meta": meta, "node_split": split, "node_start": start, "node_count": count, "refs": refs}
+    stats = _statistics(variant, arrays, node_area, depth_reached, config, seconds, degenerate.sum())
+    return arrays, stats
+
+
+def build_kdtree(
+    scene: Scene,
+    variant: str = "local",
+    config: KDTreeConfig | None = None,
+    cache: bool = True,
+) -> KDTree:
+    """Build (or load from the cache) the KD-tree of ``scene``.
+
+    Parameters
+    ----------
+    scene : Scene
+    variant : {"local", "naive"}
+        ``"naive"``: Algorithm 1, only leaves hold triangles. ``"local"``: the paper's
+        local-branch tree (Algorithm 3 pull-up; traversal per Algorithm 4).
+    config : KDTreeConfig, optional
+        Build parameters; defaults from ``defaults.toml``.
+    cache : bool
+        Reuse a tree cached under a hash of the mesh arrays and the build parameters.
+
+    Notes
+    -----
+    Zero-area triangles are left out of the tree (a warning counts them); they can
+    never be hit by Möller–Trumbore anyway.
+    """
+    if variant not in VARIANTS:
+        raise ValueError(f"unknown KD-tree variant {variant!r}; choose one of {VARIANTS}")
+    config = config or DEFAULT_CONFIG.kdtree
+    zero_area = int(scene.degenerate_mask().sum())
+    if zero_area:
+        warnings.warn(
+            f"scene {scene.name!r}: {zero_area} zero-area triangles left out of the KD-tree",
+            stacklevel=2,
+        )
+    key = content_key("kdtree", BUILDER_VERSION, variant, scene.geometry_hash(), dataclasses.asdict(config))
+    path = cache_root() / "kdtrees" / f"{scene.name}-{variant}-{key[:20]}.npz"
+    if cache:
+        loaded = load_npz(path)
+        if loaded is not None and set(_TREE_ARRAYS) <= set(loaded[0]):
+            arrays, stats = loaded
+            stats = dict(stats, cache_hit=True)
+            return KDTree(scene, variant, arrays, stats)
+    arrays, stats = _build_arrays(scene, variant, config)
+    stats["cache_hit"] = False
+    if cache:
+        save_npz(path, arrays, stats)
+    return KDTree(scene, variant, arrays, stats)

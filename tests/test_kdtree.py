@@ -1,0 +1,185 @@
+"""Unit tests of the KD-tree build, pull-up, cache and ray queries against oracles."""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pytest
+
+from kdtrace.config import KDTreeConfig
+from kdtrace.kdtree import VARIANTS, build_kdtree
+from kdtrace.oracle import intersect_brute_force
+from kdtrace.scene import Material, Scene
+from references.agreement import UNEXPLAINED, compare_hits
+from tests.kdtree_reference import leaves_reached, pull_up_reference
+
+
+def soup(n: int, seed: int, spread: float = 0.1) -> Scene:
+    """Random triangle soup in [-1, 1]^3 with triangles of size ~spread."""
+    rng = np.random.default_rng(seed)
+    centres = rng.uniform(-1, 1, (n, 1, 3))
+    vertices = (centres + rng.normal(0, spread, (n, 3, 3))).reshape(-1, 3)
+    return Scene(f"soup{n}-{seed}", vertices, np.arange(3 * n).reshape(n, 3), np.zeros(n), [Material("grey")])
+
+
+def random_rays(n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    return rng.uniform(-1.5, 1.5, (n, 3)), rng.normal(size=(n, 3))
+
+
+@pytest.fixture(scope="module")
+def big_and_small_triangles() -> Scene:
+    """Small triangles plus a few large ones spanning many cells (pull-up candidates)."""
+    small = soup(600, 3, 0.05)
+    rng = np.random.default_rng(4)
+    big = rng.uniform(-1, 1, (20, 3, 3)).reshape(-1, 3)
+    vertices = np.concatenate([small.vertices, big])
+    triangles = np.concatenate([small.triangles, np.arange(60).reshape(20, 3) + len(small.vertices)])
+    return Scene("mixed", vertices, triangles, np.zeros(len(triangles)), [Material("grey")])
+
+
+@pytest.mark.parametrize("variant", VARIANTS)
+@pytest.mark.parametrize("config", [KDTreeConfig(), KDTreeConfig(clip_triangles=True), KDTreeConfig(axis_selection="cycle", min_leaf_size=1)])
+def test_closest_hit_matches_oracle(variant, config, big_and_small_triangles):
+    scene = big_and_small_triangles
+    tree = build_kdtree(scene, variant, config, cache=False)
+    origins, directions = random_rays(3000, 11)
+    ours = tree.intersect(origins, directions)
+    oracle = intersect_brute_force(scene.vertices, scene.triangles, origins, directions)
+    labels = compare_hits(scene, origins, directions, ours, oracle).labels
+    assert (labels == UNEXPLAINED).sum() == 0
+    # Random rays almost never tie: demand the same triangle on nearly every ray.
+    assert np.mean(ours[1] == oracle[1]) > 0.999
+    hit = ours[1] >= 0
+    np.testing.assert_allclose(ours[0][hit], oracle[0][hit], rtol=1e-9)
+    assert hit.mean() > 0.1  # the test is not vacuous
+
+
+@pytest.mark.parametrize("variant", VARIANTS)
+def test_occluded_matches_oracle_with_tmin_tmax(variant, big_and_small_triangles):
+    scene = big_and_small_triangles
+    tree = build_kdtree(scene, variant, cache=False)
+    origins, directions = random_rays(2000, 12)
+    rng = np.random.default_rng(5)
+    tmin = rng.uniform(0, 0.3, len(origins))
+    tmax = tmin + rng.uniform(0, 1.5, len(origins))
+    t, _, _, _ = intersect_brute_force(scene.vertices, scene.triangles, origins, directions, tmin=0.0, tmax=tmax)
+    blocked = tree.occluded(origins, directions, tmax)
+    np.testing.assert_array_equal(blocked, np.isfinite(t))
+    t_ours, _, _, _ = tree.intersect(origins, directions, tmin=tmin, tmax=tmax)
+    expected = np.array([
+        intersect_brute_force(scene.vertices, scene.triangles, origins[i : i + 1], directions[i : i + 1], tmin[i], tmax[i])[0][0]
+        for i in range(0, len(origins), 20)
+    ])
+    np.testing.assert_allclose(t_ours[::20], expected, rtol=1e-9)
+
+
+def test_local_branch_is_the_naive_tree_with_pull_up(big_and_small_triangles):
+    scene = big_and_small_triangles
+    naive = build_kdtree(scene, "naive", cache=False)
+    local = build_kdtree(scene, "local", cache=False)
+    # Same split decisions.
+    np.testing.assert_array_equal(naive.node_meta, local.node_meta)
+    np.testing.assert_array_equal(naive.node_split, local.node_split)
+    # Pull-up equals the slow set-based reference, node by node.
+    expected = pull_up_reference(naive.node_meta, naive.node_start, naive.node_count, naive.refs)
+    for node, triangles in enumerate(expected):
+        got = set(local.refs[local.node_start[node] : local.node_start[node] + local.node_count[node]].tolist())
+        assert got == triangles, f"node {node}"
+    # Every leaf still "sees" the same triangles along its root path.
+    before = leaves_reached(naive.node_meta, naive.node_start, naive.node_count, naive.refs)
+    after = leaves_reached(local.node_meta, local.node_start, local.node_count, local.refs)
+    assert before == after
+    assert local.stats["interior_references"] > 0
+    assert local.stats["triangle_references"] < naive.stats["triangle_references"]
+
+
+@pytest.mark.parametrize("variant", VARIANTS)
+def test_statistics_are_consistent(variant, big_and_small_triangles):
+    tree = build_kdtree(big_and_small_triangles, variant, cache=False)
+    stats = tree.stats
+    assert stats["nodes"] == 2 * stats["leaves"] - 1
+    assert stats["triangle_references"] == len(tree.refs) == stats["leaf_references"] + stats["interior_references"]
+    assert stats["tree_bytes"] == sum(a.nbytes for a in (tree.node_meta, tree.node_split, tree.node_start, tree.node_count, tree.refs))
+    assert 0 < stats["max_depth"] <= 8 + 1.3 * np.log2(len(big_and_small_triangles.triangles)) + 1
+    # Every non-degenerate triangle is referenced somewhere.
+    assert set(tree.refs.tolist()) == set(range(len(big_and_small_triangles.triangles)))
+    if variant == "naive":
+        assert stats["interior_references"] == 0
+
+
+def test_cache_hit_returns_identical_tree(tmp_path, monkeypatch):
+    monkeypatch.setenv("KDTRACE_CACHE", str(tmp_path))
+    scene = soup(300, 8)
+    first = build_kdtree(scene, "local")
+    second = build_kdtree(scene, "local")
+    assert not first.stats["cache_hit"] and second.stats["cache_hit"]
+    for name in ("node_meta", "node_split", "node_start", "node_count", "refs"):
+        np.testing.assert_array_equal(getattr(first, name), getattr(second, name))
+    other = build_kdtree(scene, "local", KDTreeConfig(intersection_cost=3.0))
+    assert not other.stats["cache_hit"]
+    assert len(list((tmp_path / "kdtrees").glob("*.npz"))) == 2
+    assert not list((tmp_path / "kdtrees").glob(".*tmp*"))  # no temporary files left
+
+
+def test_zero_area_triangles_are_left_out_and_counted():
+    scene = soup(200, 9)
+    vertices = scene.vertices.copy()
+    vertices[3 * 7 + 2] = vertices[3 * 7 + 1]  # triangle 7: repeated vertex
+    vertices[3 * 8 + 2] = 2 * vertices[3 * 8 + 1] - vertices[3 * 8]  # triangle 8: collinear
+    degenerate = Scene("degenerate", vertices, scene.triangles, scene.material_ids, scene.materials)
+    assert degenerate.degenerate_mask().sum() >= 1
+    with pytest.warns(UserWarning, match="zero-area triangles left out"):
+        tree = build_kdtree(degenerate, "local", cache=False)
+    assert 7 not in set(tree.refs.tolist())
+    assert tree.stats["zero_area_triangles"] == degenerate.degenerate_mask().sum()
+
+
+def test_bad_rays_and_arguments_are_clear_errors():
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        tree = build_kdtree(soup(50, 1), "naive", cache=False)
+    good = np.zeros((4, 3))
+    with pytest.raises(ValueError, match="shape"):
+        tree.intersect(np.zeros((4, 2)), np.zeros((4, 2)))
+    with pytest.raises(ValueError, match="shape"):
+        tree.intersect(good, np.ones((5, 3)))
+    with pytest.raises(ValueError, match="finite"):
+        tree.intersect(np.full((4, 3), np.nan), np.ones((4, 3)))
+    with pytest.raises(ValueError, match="non-zero"):
+        tree.intersect(good, good)
+    with pytest.raises(ValueError, match="tmin"):
+        tree.intersect(good, np.ones((4, 3)), tmin=2.0, tmax=1.0)
+    with pytest.raises(ValueError, match="variant"):
+        build_kdtree(soup(10, 1), "bvh")
+    with pytest.raises(ValueError, match="axis_selection"):
+        KDTreeConfig(axis_selection="diagonal")
+    collapsed = Scene("flat", np.zeros((3, 3)), [[0, 1, 2]], [0], [Material("m")])
+    with pytest.raises(ValueError, match="zero area"):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            build_kdtree(collapsed, cache=False)
+
+
+@pytest.mark.parametrize("variant", VARIANTS)
+def test_axis_parallel_rays_on_a_grid_hit_exactly(variant):
+    """A flat grid in z=0 split along x and y: rays along -z through cell corners and
+    split planes, and rays travelling inside the plane (which must miss)."""
+    n = 8
+    xs, ys = np.meshgrid(np.arange(n + 1, dtype=np.float32), np.arange(n + 1, dtype=np.float32), indexing="ij")
+    vertices = np.stack([xs.ravel(), ys.ravel(), np.zeros(xs.size, np.float32)], 1)
+    index = np.arange((n + 1) ** 2).reshape(n + 1, n + 1)
+    quads = np.stack([index[:-1, :-1], index[1:, :-1], index[1:, 1:], index[:-1, 1:]], -1).reshape(-1, 4)
+    triangles = np.concatenate([quads[:, [0, 1, 2]], quads[:, [0, 2, 3]]])
+    scene = Scene("grid", vertices, triangles, np.zeros(len(triangles)), [Material("m")])
+    tree = build_kdtree(scene, variant, KDTreeConfig(min_leaf_size=1), cache=False)
+    gx, gy = np.meshgrid(np.linspace(0, n, 4 * n + 1), np.linspace(0, n, 4 * n + 1), indexing="ij")
+    origins = np.stack([gx.ravel(), gy.ravel(), np.full(gx.size, 5.0)], 1)
+    directions = np.tile([0.0, 0.0, -1.0], (len(origins), 1))
+    t, tri, _, _ = tree.intersect(origins, directions)
+    assert np.all(tri >= 0), "every ray through the closed grid (edges included) must hit"
+    np.testing.assert_array_equal(t, 5.0)
+    in_plane = np.stack([gx.ravel(), gy.ravel(), np.zeros(gx.size)], 1)
+    t, tri, _, _ = tree.intersect(in_plane - [1.0, 0.0, 0.0], np.tile([1.0, 0.0, 0.0], (len(origins), 1)))
+    assert np.all(tri == -1), "rays inside the triangles' plane are parallel to them"
