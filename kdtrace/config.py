@@ -40,7 +40,7 @@ class KDTreeConfig:
     """
 
     traversal_cost: float = 1.0
-    intersection_cost: float = 1.5
+    intersection_cost: float = 5.0
     min_leaf_size: int = 2
     depth_base: float = 8.0
     depth_log_factor: float = 1.3

@@ -1,0 +1,146 @@
+"""Procedural test scenes: deterministic from a seed, placeable at any scale and offset.
+
+Every generator returns a :class:`~kdtrace.scene.Scene` with one grey diffuse material,
+a default camera (:func:`kdtrace.scenes.default_camera`) and a white sky. Geometry is
+built in float64 in a unit-sized frame (about ``[-1, 1]^3``), then mapped to
+``base * scale + offset`` and rounded to float32 once, so ``scale`` (1e-4 .. 1e5) and
+``offset`` (far from the origin) test the trees' numerical robustness.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+from kdtrace.scene import Material, Scene, Sky
+from kdtrace.scenes import DEFAULT_SKY_RADIANCE, default_camera
+
+
+def _scene(name: str, corners: np.ndarray, scale: float, offset: Sequence[float]) -> Scene:
+    """Scene of triangle soup ``corners`` (T, 3, 3) placed at ``corners * scale + offset``."""
+    if not scale > 0.0:
+        raise ValueError(f"scale must be positive, got {scale}")
+    placed = corners.reshape(-1, 3) * scale + np.asarray(offset, dtype=np.float64)
+    vertices = placed.astype(np.float32)
+    return Scene(
+        name=name,
+        vertices=vertices,
+        triangles=np.arange(len(vertices)).reshape(-1, 3),
+        material_ids=np.zeros(len(corners)),
+        materials=[Material("procedural")],
+        cameras=[default_camera(vertices)],
+        sky=Sky(DEFAULT_SKY_RADIANCE),
+    )
+
+
+def _unit_vectors(rng: np.random.Generator, shape: tuple[int, ...]) -> np.ndarray:
+    vectors = rng.normal(size=(*shape, 3))
+    return vectors / np.linalg.norm(vectors, axis=-1, keepdims=True)
+
+
+def random_soup(
+    n_triangles: int = 1000,
+    *,
+    seed: int = 0,
+    sizes: tuple[float, float] = (0.01, 0.2),
+    scale: float = 1.0,
+    offset: Sequence[float] = (0.0, 0.0, 0.0),
+) -> Scene:
+    """Random triangles with centres uniform in ``[-1, 1]^3``.
+
+    Parameters
+    ----------
+    n_triangles : int
+        Number of triangles.
+    seed : int
+        Seed of the generator.
+    sizes : (float, float)
+        Range of the triangles' radii (distance of the corners from the centre, before
+        ``scale``), sampled log-uniformly.
+    scale, offset : float, 3 floats
+        Placement of the unit frame (see the module docstring).
+    """
+    if n_triangles < 1 or not 0.0 < sizes[0] <= sizes[1]:
+        raise ValueError("random_soup needs n_triangles >= 1 and 0 < sizes[0] <= sizes[1]")
+    rng = np.random.default_rng(seed)
+    centres = rng.uniform(-1.0, 1.0, size=(n_triangles, 1, 3))
+    radii = np.exp(rng.uniform(np.log(sizes[0]), np.log(sizes[1]), size=(n_triangles, 1, 1)))
+    return _scene("random-soup", centres + radii * _unit_vectors(rng, (n_triangles, 3)), scale, offset)
+
+
+def heightfield_grid(
+    cells: int = 32,
+    *,
+    seed: int = 0,
+    amplitude: float = 0.2,
+    scale: float = 1.0,
+    offset: Sequence[float] = (0.0, 0.0, 0.0),
+) -> Scene:
+    """A regular ``cells x cells`` grid over ``[-1, 1]^2`` (2 triangles per cell), height along z.
+
+    The height is a sum of four random sine waves of total amplitude ``amplitude``
+    (0 gives a flat, coplanar grid).
+    """
+    if cells < 1:
+        raise ValueError(f"heightfield_grid needs cells >= 1, got {cells}")
+    rng = np.random.default_rng(seed)
+    x, y = np.meshgrid(np.linspace(-1.0, 1.0, cells + 1), np.linspace(-1.0, 1.0, cells + 1), indexing="ij")
+    frequencies = rng.uniform(0.5, 4.0, size=(4, 2))
+    phases = rng.uniform(0.0, 2.0 * np.pi, size=4)
+    z = sum(np.sin(np.pi * (f[0] * x + f[1] * y) + p) for f, p in zip(frequencies, phases)) * amplitude / 4.0
+    points = np.stack([x, y, z], axis=-1)
+    a, b, c, d = points[:-1, :-1], points[1:, :-1], points[1:, 1:], points[:-1, 1:]
+    corners = np.concatenate([np.stack([a, b, c], -2).reshape(-1, 3, 3), np.stack([a, c, d], -2).reshape(-1, 3, 3)])
+    return _scene("heightfield-grid", corners, scale, offset)
+
+
+def slivers(
+    n_triangles: int = 1000,
+    *,
+    seed: int = 0,
+    max_aspect: float = 1e6,
+    scale: float = 1.0,
+    offset: Sequence[float] = (0.0, 0.0, 0.0),
+) -> Scene:
+    """Long thin triangles: length 0.2 .. 1, aspect ratio (length / width) log-uniform in ``[1, max_aspect]``.
+
+    Centres are uniform in ``[-1, 1]^3``, directions uniformly random.
+    """
+    if n_triangles < 1 or not max_aspect >= 1.0:
+        raise ValueError("slivers needs n_triangles >= 1 and max_aspect >= 1")
+    rng = np.random.default_rng(seed)
+    centres = rng.uniform(-1.0, 1.0, size=(n_triangles, 3))
+    lengths = rng.uniform(0.2, 1.0, size=(n_triangles, 1))
+    widths = lengths / np.exp(rng.uniform(0.0, np.log(max_aspect), size=(n_triangles, 1)))
+    along = _unit_vectors(rng, (n_triangles,))
+    across = np.cross(along, _unit_vectors(rng, (n_triangles,)))
+    across /= np.linalg.norm(across, axis=1, keepdims=True)
+    corners = np.stack(
+        [centres - 0.5 * lengths * along, centres + 0.5 * lengths * along, centres + widths * across], axis=1
+    )
+    return _scene("slivers", corners, scale, offset)
+
+
+def coplanar_stack(
+    n_triangles: int = 1000,
+    *,
+    seed: int = 0,
+    duplicate_fraction: float = 0.25,
+    scale: float = 1.0,
+    offset: Sequence[float] = (0.0, 0.0, 0.0),
+) -> Scene:
+    """Many overlapping triangles in the plane z = 0, a fraction of them exact duplicates.
+
+    Corners are uniform in ``[-1, 1]^2``; ``duplicate_fraction`` of the triangles copy an
+    other one (same corners, same order), so hits tie exactly.
+    """
+    if n_triangles < 1 or not 0.0 <= duplicate_fraction < 1.0:
+        raise ValueError("coplanar_stack needs n_triangles >= 1 and 0 <= duplicate_fraction < 1")
+    rng = np.random.default_rng(seed)
+    unique = max(1, int(round(n_triangles * (1.0 - duplicate_fraction))))
+    flat = np.zeros((unique, 3, 3))
+    flat[:, :, :2] = rng.uniform(-1.0, 1.0, size=(unique, 3, 2))
+    copies = flat[rng.integers(0, unique, size=n_triangles - unique)]
+    corners = np.concatenate([flat, copies])[rng.permutation(n_triangles)]
+    return _scene("coplanar-stack", corners, scale, offset)
