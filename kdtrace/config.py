@@ -75,12 +75,51 @@ class EmbreeCheckConfig:
 
 
 @dataclass(frozen=True)
+class ProfileConfig:
+    """What one report profile runs.
+
+    Attributes
+    ----------
+    scenes : tuple of str
+        Scene names (``scenes/*.toml``).
+    agreement_rays_per_kind : int
+        Rays of each kind in the Embree agreement check.
+    timing_rays : int
+        Incoherent rays timed per tree and Embree.
+    frame_width, frame_height, frame_spp : int
+        The primary-ray frame timed for Table 1 (pixels, samples per pixel).
+    seed : int
+        Seed of every ray generator.
+    """
+
+    scenes: tuple[str, ...] = ()
+    agreement_rays_per_kind: int = 100_000
+    timing_rays: int = 200_000
+    frame_width: int = 256
+    frame_height: int = 256
+    frame_spp: int = 4
+    seed: int = 20261122
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "scenes", tuple(self.scenes))
+        if min(self.agreement_rays_per_kind, self.timing_rays, self.frame_width, self.frame_height, self.frame_spp) < 1:
+            raise ValueError("profile ray counts and frame sizes must be positive")
+
+
+@dataclass(frozen=True)
 class Config:
     """The whole resolved configuration."""
 
     kdtree: KDTreeConfig = KDTreeConfig()
     cache: CacheConfig = CacheConfig()
     embree_check: EmbreeCheckConfig = EmbreeCheckConfig()
+    profiles: dict[str, ProfileConfig] = dataclasses.field(default_factory=dict)
+
+    def profile(self, name: str) -> ProfileConfig:
+        """The named profile; an unknown name lists the known ones."""
+        if name not in self.profiles:
+            raise ValueError(f"unknown profile {name!r}; known profiles: {', '.join(sorted(self.profiles))}")
+        return self.profiles[name]
 
     def to_dict(self) -> dict[str, Any]:
         """Plain nested dict, for recording in result files."""
@@ -96,7 +135,14 @@ _SECTIONS = {
 
 def _merge(base: dict[str, Any], overlay: dict[str, Any], origin: str) -> dict[str, Any]:
     merged = {key: dict(value) for key, value in base.items()}
+    for name, values in overlay.get("profiles", {}).items():
+        unknown = set(values) - {f.name for f in dataclasses.fields(ProfileConfig)}
+        if unknown:
+            raise ValueError(f"{origin}: unknown keys in [profiles.{name}]: {sorted(unknown)}")
+        merged["profiles"][name] = {**merged["profiles"].get(name, {}), **values}
     for section, values in overlay.items():
+        if section == "profiles":
+            continue
         if section not in _SECTIONS:
             raise ValueError(f"{origin}: unknown section [{section}]; known: {sorted(_SECTIONS)}")
         known = {f.name for f in dataclasses.fields(_SECTIONS[section])}
@@ -120,7 +166,8 @@ def load_config(path: str | Path | None = None) -> Config:
     if path is not None:
         with open(path, "rb") as handle:
             values = _merge(values, tomllib.load(handle), str(path))
-    return Config(**{name: cls(**values.get(name, {})) for name, cls in _SECTIONS.items()})
+    profiles = {name: ProfileConfig(**entry) for name, entry in values.get("profiles", {}).items()}
+    return Config(**{name: cls(**values.get(name, {})) for name, cls in _SECTIONS.items()}, profiles=profiles)
 
 
 DEFAULT_CONFIG = load_config()

@@ -1,0 +1,125 @@
+"""The ``kdtrace`` command line.
+
+Subcommands: ``scenes`` (list scene descriptions), ``build`` (build and cache the
+KD-trees of a scene, print their statistics), ``check-embree`` (hit-for-hit agreement
+with Embree), ``report`` (the main job: Table 1 for a profile).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+from tabulate import tabulate
+from tqdm import tqdm
+
+from kdtrace.config import load_config
+
+REPOSITORY = Path(__file__).resolve().parents[1]
+
+
+def _scenes(args, config) -> int:
+    from kdtrace.scenes import list_scenes, load_scene
+
+    rows = []
+    for name in tqdm(list_scenes(), unit="scene", desc="loading"):
+        summary = load_scene(name).summary()
+        rows.append(summary)
+    print(tabulate(rows, headers="keys", tablefmt="github"))
+    return 0
+
+
+def _build(args, config) -> int:
+    from kdtrace.kdtree import VARIANTS, build_kdtree
+    from kdtrace.scenes import load_scene
+
+    scene = load_scene(args.scene)
+    variants = VARIANTS if args.variant == "both" else (args.variant,)
+    rows = []
+    with tqdm(variants, unit="tree", desc=f"building {scene.name}") as bar:
+        for variant in bar:
+            bar.set_postfix_str(variant)
+            rows.append(build_kdtree(scene, variant, config.kdtree, cache=not args.no_cache).stats)
+    print(tabulate(rows, headers="keys", tablefmt="github"))
+    return 0
+
+
+def _check_embree(args, config) -> int:
+    from references.agreement import main_check_embree
+
+    rays = args.rays or config.embree_check.rays_per_kind
+    seed = config.embree_check.seed if args.seed is None else args.seed
+    df, text = main_check_embree(args.scene, rays, seed)
+    print(text)
+    unexplained = int(df["unexplained"].sum())
+    print(f"unexplained disagreements: {unexplained}")
+    return 1 if unexplained else 0
+
+
+def _report(args, config) -> int:
+    from reports import table1
+
+    profile = config.profile(args.profile)
+    scenes = args.scenes.split(",") if args.scenes else None
+    if scenes:
+        from kdtrace.scenes import list_scenes
+
+        unknown = sorted(set(scenes) - set(list_scenes()))
+        if unknown:
+            raise ValueError(f"unknown scenes {unknown}; available: {', '.join(list_scenes())}")
+    out_dir = Path(args.out) if args.out else REPOSITORY / "reports" / args.profile
+    started = time.perf_counter()
+    table = table1.generate(config, args.profile, out_dir, scenes or list(profile.scenes), fresh=args.fresh)
+    print(table1.markdown_table(table))
+    print(f"\nwrote {out_dir}/table1.md, table1.csv, agreement.md, provenance.json in {time.perf_counter() - started:.0f} s")
+    unexplained = int(table["unexplained"].sum())
+    if unexplained:
+        print(f"FAIL: {unexplained} unexplained disagreements with Embree (see agreement.md)")
+        return 1
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="kdtrace", description=__doc__.splitlines()[0])
+    parser.add_argument("--config", help="TOML file overriding kdtrace/defaults.toml")
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    sub.add_parser("scenes", help="list the scene descriptions with their counts").set_defaults(run=_scenes)
+
+    build = sub.add_parser("build", help="build (or load cached) KD-trees and print their statistics")
+    build.add_argument("scene", help="scene name, .toml, .obj or .ply")
+    build.add_argument("--variant", choices=("naive", "local", "both"), default="both")
+    build.add_argument("--no-cache", action="store_true", help="rebuild even when a cached tree exists")
+    build.set_defaults(run=_build)
+
+    check = sub.add_parser("check-embree", help="compare both trees with Embree ray for ray")
+    check.add_argument("scene", help="scene name, .toml, .obj or .ply")
+    check.add_argument("--rays", type=int, help="rays per kind (default from the configuration: 1,000,000)")
+    check.add_argument("--seed", type=int)
+    check.set_defaults(run=_check_embree)
+
+    report = sub.add_parser("report", help="the main job: regenerate Table 1 for a profile")
+    report.add_argument("--profile", default="quick", help="profile name from the configuration (quick, paper)")
+    report.add_argument("--scenes", help="comma-separated subset of the profile's scenes")
+    report.add_argument("--out", help="output folder (default reports/PROFILE)")
+    report.add_argument("--fresh", action="store_true", help="measure every scene again instead of resuming")
+    report.set_defaults(run=_report)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        config = load_config(args.config)
+        if getattr(args, "profile", None):
+            config.profile(args.profile)  # unknown names fail before any work
+        return args.run(args, config)
+    except (ValueError, FileNotFoundError) as error:
+        print(f"kdtrace: error: {error}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())
