@@ -18,37 +18,50 @@ STACK_SIZE = 96
 
 
 @njit(cache=True, inline="always")
-def intersect_triangle(tri, v0, e1, e2, ox, oy, oz, dx, dy, dz, tmin, tmax):
-    """Möller–Trumbore, double-sided, edges inclusive; returns (t, u, v), t=inf on a miss."""
-    e1x = e1[tri, 0]
-    e1y = e1[tri, 1]
-    e1z = e1[tri, 2]
-    e2x = e2[tri, 0]
-    e2y = e2[tri, 1]
-    e2z = e2[tri, 2]
+def intersect_triangle(tri, corners, ox, oy, oz, dx, dy, dz, tmin, tmax):
+    """Möller–Trumbore, double-sided, edges inclusive; returns (t, u, v), t=inf on a miss.
+
+    ``corners[tri]`` holds the triangle's three float32 vertices; the edges are formed
+    in float64, where the difference of two float32 numbers is exact.
+    """
+    v0x = np.float64(corners[tri, 0])
+    v0y = np.float64(corners[tri, 1])
+    v0z = np.float64(corners[tri, 2])
+    e1x = corners[tri, 3] - v0x
+    e1y = corners[tri, 4] - v0y
+    e1z = corners[tri, 5] - v0z
+    e2x = corners[tri, 6] - v0x
+    e2y = corners[tri, 7] - v0y
+    e2z = corners[tri, 8] - v0z
     px = dy * e2z - dz * e2y
     py = dz * e2x - dx * e2z
     pz = dx * e2y - dy * e2x
     det = e1x * px + e1y * py + e1z * pz
-    if det == 0.0:
+    # Compare unnormalised barycentrics against |det|: one division, only for hits.
+    if det > 0.0:
+        sign = 1.0
+    elif det < 0.0:
+        sign = -1.0
+    else:
         return np.inf, 0.0, 0.0
-    inv = 1.0 / det
-    sx = ox - v0[tri, 0]
-    sy = oy - v0[tri, 1]
-    sz = oz - v0[tri, 2]
-    u = (sx * px + sy * py + sz * pz) * inv
-    if u < 0.0 or u > 1.0:
+    abs_det = det * sign
+    sx = ox - v0x
+    sy = oy - v0y
+    sz = oz - v0z
+    u_scaled = (sx * px + sy * py + sz * pz) * sign
+    if u_scaled < 0.0 or u_scaled > abs_det:
         return np.inf, 0.0, 0.0
     qx = sy * e1z - sz * e1y
     qy = sz * e1x - sx * e1z
     qz = sx * e1y - sy * e1x
-    v = (dx * qx + dy * qy + dz * qz) * inv
-    if v < 0.0 or u + v > 1.0:
+    v_scaled = (dx * qx + dy * qy + dz * qz) * sign
+    if v_scaled < 0.0 or u_scaled + v_scaled > abs_det:
         return np.inf, 0.0, 0.0
-    t = (e2x * qx + e2y * qy + e2z * qz) * inv
-    if t <= tmin or t >= tmax:
+    t_scaled = (e2x * qx + e2y * qy + e2z * qz) * sign
+    if t_scaled <= tmin * abs_det or t_scaled >= tmax * abs_det:
         return np.inf, 0.0, 0.0
-    return t, u, v
+    inv = 1.0 / abs_det
+    return t_scaled * inv, u_scaled * inv, v_scaled * inv
 
 
 @njit(cache=True, inline="always")
@@ -85,12 +98,14 @@ def clip_to_box(box, ox, oy, oz, dx, dy, dz, tmin, tmax):
 
 @njit(cache=True)
 def trace_ray(
-    node_meta, node_split, node_start, node_count, refs, box, v0, e1, e2,
+    nodes, splits, refs, box, corners,
     ox, oy, oz, dx, dy, dz, tmin, tmax, any_hit, st_node, st_ent, st_ext,
 ):
     """Closest (or any) hit of one ray; returns (t, triangle, u, v, nodes_visited, tests).
 
-    ``st_*`` are caller-owned stack buffers (no allocation per ray).
+    ``nodes`` is the packed (N, 4) int32 node array ``[meta, split bits, start, count]``
+    and ``splits`` its float32 view (column 1 is the split position), so one node is
+    16 contiguous bytes. ``st_*`` are caller-owned stack buffers (no allocation per ray).
     """
     best_t = tmax
     best_tri = -1
@@ -103,17 +118,20 @@ def trace_ray(
         return np.inf, -1, 0.0, 0.0, visited, tests
     o = (ox, oy, oz)
     d = (dx, dy, dz)
+    # Reciprocal directions: a multiply per node instead of a divide (inf where d = 0,
+    # a case handled before it is used).
+    inv_d = (1.0 / dx if dx != 0.0 else np.inf, 1.0 / dy if dy != 0.0 else np.inf, 1.0 / dz if dz != 0.0 else np.inf)
     node = 0
     sp = 0
     while True:
         visited += 1
-        count = node_count[node]
+        count = nodes[node, 3]
         if count > 0:
-            first = node_start[node]
+            first = nodes[node, 2]
             for k in range(first, first + count):
                 tri = refs[k]
                 tests += 1
-                t, u, v = intersect_triangle(tri, v0, e1, e2, ox, oy, oz, dx, dy, dz, tmin, best_t)
+                t, u, v = intersect_triangle(tri, corners, ox, oy, oz, dx, dy, dz, tmin, best_t)
                 if t < best_t:
                     best_t = t
                     best_tri = tri
@@ -121,11 +139,11 @@ def trace_ray(
                     best_v = v
                     if any_hit:
                         return best_t, best_tri, best_u, best_v, visited, tests
-        meta = node_meta[node]
+        meta = nodes[node, 0]
         if meta != LEAF:
             axis = meta & 3
             left = meta >> 2
-            split = node_split[node]
+            split = splits[node, 1]
             if o[axis] < split or (o[axis] == split and d[axis] <= 0.0):
                 near = left
                 far = left + 1
@@ -135,7 +153,7 @@ def trace_ray(
             if d[axis] == 0.0:
                 node = near
                 continue
-            t_plane = (split - o[axis]) / d[axis]
+            t_plane = (split - o[axis]) * inv_d[axis]
             if t_plane > ext or t_plane <= 0.0 or t_plane > best_t:
                 node = near
             elif t_plane < ent:
@@ -168,7 +186,7 @@ def trace_ray(
 
 @njit(cache=True, parallel=True)
 def trace_batch(
-    node_meta, node_split, node_start, node_count, refs, box, v0, e1, e2,
+    nodes, splits, refs, box, corners,
     origins, directions, tmin, tmax, any_hit, n_chunks,
     out_t, out_tri, out_u, out_v, out_visited, out_tests,
 ):
@@ -181,7 +199,7 @@ def trace_batch(
         st_ext = np.empty(STACK_SIZE, np.float64)
         for i in range(c * chunk, min(n, (c + 1) * chunk)):
             t, tri, u, v, visited, tests = trace_ray(
-                node_meta, node_split, node_start, node_count, refs, box, v0, e1, e2,
+                nodes, splits, refs, box, corners,
                 origins[i, 0], origins[i, 1], origins[i, 2],
                 directions[i, 0], directions[i, 1], directions[i, 2],
                 tmin[i], tmax[i], any_hit, st_node, st_ent, st_ext,

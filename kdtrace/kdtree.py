@@ -68,10 +68,10 @@ class KDTree:
         self.refs = arrays["refs"]
         lo, hi = scene.bounds
         self.box = np.concatenate([lo, hi])
-        corners = scene.vertices.astype(np.float64)[scene.triangles]
-        self.v0 = np.ascontiguousarray(corners[:, 0])
-        self.e1 = np.ascontiguousarray(corners[:, 1] - corners[:, 0])
-        self.e2 = np.ascontiguousarray(corners[:, 2] - corners[:, 0])
+        # Traversal copies: one node in 16 contiguous bytes, one triangle in 36.
+        self.packed_nodes = np.ascontiguousarray(np.stack(
+            [self.node_meta, self.node_split.view(np.int32), self.node_start, self.node_count], axis=1))
+        self.corners = np.ascontiguousarray(scene.vertices[scene.triangles].reshape(-1, 9))
         self.last_counters: TraceCounters | None = None
 
     def __repr__(self) -> str:
@@ -89,8 +89,7 @@ class KDTree:
         # Several chunks per thread balance the load; a chunk owns one traversal stack.
         n_chunks = max(1, min(n, 16 * numba.get_num_threads()))
         traverse_kernels.trace_batch(
-            self.node_meta, self.node_split, self.node_start, self.node_count, self.refs,
-            self.box, self.v0, self.e1, self.e2, origins, directions, tmin, tmax, any_hit,
+            self.packed_nodes, self.packed_nodes.view(np.float32), self.refs, self.box, self.corners, origins, directions, tmin, tmax, any_hit,
             n_chunks, out_t, out_tri, out_u, out_v, visited, tests,
         )
         self.last_counters = TraceCounters(visited, tests)
