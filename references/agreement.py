@@ -7,6 +7,9 @@ explained with float64 arithmetic as one of:
 
 ``zero-area triangle``
     a side hit a triangle of zero area (our trees drop them, Embree keeps them);
+``origin on surface``
+    the hit lies within tolerance of ``t = 0``: the ray starts on a triangle, where
+    Embree accepts ``t = 0`` and our trees and the oracle demand ``t > tmin``;
 ``tmax boundary``
     the hit lies within tolerance of ``tmax`` (shadow rays ending at the light);
 ``grazing``
@@ -52,12 +55,13 @@ MIN_COS = 1e-6
 AGREE = "agree"
 TIE = "tie: same distance"
 ZERO_AREA = "zero-area triangle"
+TMIN = "origin on surface"
 TMAX = "tmax boundary"
 GRAZING = "grazing"
 EDGE = "edge/vertex"
 UNEXPLAINED = "unexplained"
 #: Explanations in the order they are tried; the first that applies is the label.
-EXPLANATIONS = (ZERO_AREA, TMAX, GRAZING, EDGE)
+EXPLANATIONS = (ZERO_AREA, TMIN, TMAX, GRAZING, EDGE)
 LABELS = (AGREE, TIE, *EXPLANATIONS, UNEXPLAINED)
 #: The ray kinds of :func:`check_scene`, with the query each uses.
 RAY_KINDS = {"primary": "intersect", "random": "intersect", "vertex": "intersect", "edge": "intersect", "shadow": "occluded"}
@@ -195,9 +199,10 @@ def _reasons(
     grazing = on_triangle & (np.abs(hit["cos"]) <= geometry.grazing_cos[tri])
     edge = on_triangle & (hit["min_bary"] <= tol_bary)
     at_tmax = on_triangle & np.isfinite(tmax) & (np.abs(t - tmax) <= tol_t)
+    at_tmin = on_triangle & ~grazing & (np.abs(t) <= tol_t)
     clear = on_triangle & ~grazing & ~edge & (t > tol_t) & (t < tmax - tol_t)
     in_range = (t > -tol_t) & (t < tmax + tol_t)
-    return {ZERO_AREA: zero, TMAX: at_tmax, GRAZING: grazing, EDGE: edge, "clear": clear, "in_range": in_range}
+    return {ZERO_AREA: zero, TMIN: at_tmin, TMAX: at_tmax, GRAZING: grazing, EDGE: edge, "clear": clear, "in_range": in_range}
 
 
 def _first_label(ray: np.ndarray, reasons: dict[str, np.ndarray], rays: np.ndarray) -> np.ndarray:
@@ -380,7 +385,7 @@ def compare_occlusion(
         o = np.broadcast_to(origins[i], (len(solid), 3))
         d = np.broadcast_to(directions[i], (len(solid), 3))
         reasons = _reasons(geometry, solid, o, d, np.full(len(solid), tmax[i]))
-        near = reasons["in_range"] & (reasons[TMAX] | reasons[GRAZING] | reasons[EDGE])
+        near = reasons["in_range"] & (reasons[TMIN] | reasons[TMAX] | reasons[GRAZING] | reasons[EDGE])
         far_end = tmax[i] if np.isfinite(tmax[i]) else 0.0
         position = position_tolerance(origins[i : i + 1], directions[i : i + 1], far_end, geometry.scale)[0]
         if reasons["clear"].any():

@@ -159,3 +159,13 @@ def test_check_scene_finds_a_broken_intersector():
 
     df = ag.check_scene(scene, {"broken": DropsTriangleSeven(scene)}, 2000, seed=1, progress=False).set_index("kind")
     assert df.loc["random", "unexplained"] > 0 and "primary" not in df.index  # no camera
+
+
+def test_origin_on_surface_is_explained_only_at_t_zero(quad):
+    """Embree accepts t = 0 for a ray starting on a triangle; we demand t > tmin."""
+    origins = np.array([[0.25, 0.6, 1.0], [0.25, 0.6, 0.5]])
+    directions = np.tile([0.0, 0.0, 1.0], (2, 1))
+    theirs = answer([0.0, 0.5], [1, 1])
+    ours = answer([2.0, 2.5], [3, 3])  # went on to the far wall
+    labels = ag.compare_hits(quad, origins, directions, ours, theirs).labels
+    assert list(labels) == [ag.TMIN, ag.UNEXPLAINED]
