@@ -107,12 +107,50 @@ class ProfileConfig:
 
 
 @dataclass(frozen=True)
+class RenderConfig:
+    """Defaults of the path tracer (``kdtrace.render``).
+
+    Attributes
+    ----------
+    spp : int
+        Samples (paths) per pixel.
+    max_depth : int
+        Longest path in segments, Mitsuba 3's ``path`` convention (1: only emitters seen
+        directly, 2: direct light, 3: one indirect bounce; -1: unbounded with Russian roulette).
+    rr_depth : int
+        Depth from which Russian roulette may end a path (Mitsuba's ``rr_depth``).
+    seed : int
+        Key of the counter-based random number generator.
+    tile_size : int
+        Side of the square pixel tiles rendered in parallel (does not change the image).
+    eye_separation : float
+        Distance between the two pinholes of a stereo pair, scene units.
+    """
+
+    spp: int = 4
+    max_depth: int = 3
+    rr_depth: int = 5
+    seed: int = 0
+    tile_size: int = 16
+    eye_separation: float = 0.065
+
+    def __post_init__(self) -> None:
+        if self.spp < 1 or self.tile_size < 1 or self.rr_depth < 1:
+            raise ValueError("render.spp, render.tile_size and render.rr_depth must be >= 1")
+        if self.max_depth < 1 and self.max_depth != -1:
+            raise ValueError("render.max_depth must be >= 1 or -1 (unbounded)")
+        if not self.eye_separation > 0.0:
+            raise ValueError("render.eye_separation must be positive")
+
+
+@dataclass(frozen=True)
 class Config:
     """The whole resolved configuration."""
 
     kdtree: KDTreeConfig = KDTreeConfig()
     cache: CacheConfig = CacheConfig()
     embree_check: EmbreeCheckConfig = EmbreeCheckConfig()
+    render: RenderConfig = RenderConfig()
     profiles: dict[str, ProfileConfig] = dataclasses.field(default_factory=dict)
 
     def profile(self, name: str) -> ProfileConfig:
@@ -130,6 +168,7 @@ _SECTIONS = {
     "kdtree": KDTreeConfig,
     "cache": CacheConfig,
     "embree_check": EmbreeCheckConfig,
+    "render": RenderConfig,
 }
 
 

@@ -1,0 +1,490 @@
+"""numba kernels of the path tracer: RNG, sampling, BSDFs, the per-pixel path loop.
+
+Everything here is a pure function over flat arrays; validation, scene packing and
+timing live in :mod:`kdtrace.render`. The tile kernel :func:`render_tiles` takes seven
+feature flags that numba compiles as literal constants, so every branch a scene does
+not need is dropped.
+
+Conventions (Mitsuba 3's ``path`` integrator, so both renderers estimate one image):
+
+- ``depth`` is the number of scattering events before the current hit (0 at the camera
+  ray's hit): emission is added at every hit, next-event estimation and BSDF sampling
+  only while ``depth + 1 < max_depth`` (max_depth = -1: no limit).
+- Diffuse and mirror surfaces are two-sided (the shading normal is flipped to face the
+  incoming direction, like Mitsuba's ``twosided``); emitters are one-sided and emit on
+  the side of their counter-clockwise geometric normal; dielectrics use the unflipped
+  shading normal to tell inside from outside.
+- NEE samples emitter triangles power-weighted (area x mean emission) and combines with
+  BSDF sampling by the power heuristic; specular bounces and the sky are reached by
+  BSDF sampling only (weight 1).
+- Russian roulette from ``depth >= rr_depth`` with probability
+  ``min(max(throughput) * eta^2, 0.95)``.
+
+Random numbers are counter-based, so an image does not depend on threads or tiling:
+``uniform(key, dim)`` hashes (splitmix64 finaliser) the path key
+``sample_key(seed, pixel, sample)`` with the dimension ``dim``: 0 and 1 jitter the
+pixel position, and bounce ``depth`` uses ``2 + 7 * depth + k`` for k = light pick,
+light point (2), dielectric lobe, BSDF direction (2), Russian roulette.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import literally, njit, prange
+
+from kdtrace._kdtree_traverse import STACK_SIZE, trace_ray
+
+KIND_DIFFUSE = 0
+KIND_MIRROR = 1
+KIND_DIELECTRIC = 2
+
+#: Mitsuba's ``math::RayEpsilon<float>`` (1500 float32 epsilons): relative origin offset.
+RAY_EPSILON = 1500.0 * 2.0**-24
+#: Mitsuba's ``math::ShadowEpsilon<float>``: shadow rays stop this fraction short.
+SHADOW_EPSILON = 10.0 * RAY_EPSILON
+#: Random dimensions of one bounce: light pick, light point (2), lobe, direction (2), RR.
+DIMS_PER_BOUNCE = 7
+#: Dimensions 0 and 1 of every sample are the pixel jitter.
+CAMERA_DIMS = 2
+#: Counter columns per tile.
+COUNT_CAMERA, COUNT_SHADOW, COUNT_BOUNCE, COUNT_PATHS = 0, 1, 2, 3
+
+_GOLDEN = np.uint64(0x9E3779B97F4A7C15)
+_MUL1 = np.uint64(0xBF58476D1CE4E5B9)
+_MUL2 = np.uint64(0x94D049BB133111EB)
+_INV_2_53 = 1.0 / 9007199254740992.0
+_INV_PI = 1.0 / math.pi
+
+
+# ------------------------------------------------------------------ counter-based RNG
+@njit(cache=True, inline="always")
+def mix64(z):
+    """splitmix64 finaliser of ``z + golden gamma`` (uint64 in, uint64 out)."""
+    z = z + _GOLDEN
+    z = (z ^ (z >> np.uint64(30))) * _MUL1
+    z = (z ^ (z >> np.uint64(27))) * _MUL2
+    return z ^ (z >> np.uint64(31))
+
+
+@njit(cache=True)
+def sample_key(seed, pixel, sample):
+    """Key of one path: a hash of (seed, pixel index ``row * width + col``, sample index)."""
+    return mix64(mix64(mix64(np.uint64(seed)) ^ np.uint64(pixel)) ^ np.uint64(sample))
+
+
+@njit(cache=True)
+def uniform(key, dim):
+    """Uniform float64 in [0, 1) for random dimension ``dim`` of the path ``key`` (53 bits)."""
+    z = mix64(key ^ (np.uint64(dim) * _MUL2))
+    return np.float64(z >> np.uint64(11)) * _INV_2_53
+
+
+# ------------------------------------------------------------------ camera and sampling
+@njit(cache=True, inline="always")
+def camera_direction(cam, width, height, x, y):
+    """Unit direction through image position (x, y) in pixels, row 0 at the top.
+
+    ``cam`` is float64 ``[position(3), forward(3), right(3), up(3), half_w, half_h]``;
+    same arithmetic as :func:`kdtrace.rays.pinhole_directions`.
+    """
+    sx = (2.0 * x / width - 1.0) * cam[12]
+    sy = (1.0 - 2.0 * y / height) * cam[13]
+    dx = cam[3] + sx * cam[6] + sy * cam[9]
+    dy = cam[4] + sx * cam[7] + sy * cam[10]
+    dz = cam[5] + sx * cam[8] + sy * cam[11]
+    norm = math.sqrt(dx * dx + dy * dy + dz * dz)
+    return dx / norm, dy / norm, dz / norm
+
+
+@njit(cache=True, inline="always")
+def cosine_hemisphere(u1, u2, nx, ny, nz):
+    """Cosine-weighted unit direction about the unit normal n (pdf cos/pi per steradian)."""
+    r = math.sqrt(u1)
+    phi = 2.0 * math.pi * u2
+    lx = r * math.cos(phi)
+    ly = r * math.sin(phi)
+    lz = math.sqrt(max(0.0, 1.0 - u1))
+    # Duff et al. 2017 orthonormal basis.
+    sign = 1.0 if nz >= 0.0 else -1.0
+    a = -1.0 / (sign + nz)
+    b = nx * ny * a
+    tx, ty, tz = 1.0 + sign * nx * nx * a, sign * b, -sign * nx
+    bx, by, bz = b, sign + ny * ny * a, -ny
+    return (lx * tx + ly * bx + lz * nx, lx * ty + ly * by + lz * ny, lx * tz + ly * bz + lz * nz)
+
+
+@njit(cache=True, inline="always")
+def fresnel_dielectric(cos_i, eta):
+    """Mitsuba's ``fresnel``: (reflectance, signed cos_t, eta_it, eta_ti) for relative IOR ``eta``."""
+    outside = cos_i >= 0.0
+    eta_it = eta if outside else 1.0 / eta
+    eta_ti = 1.0 / eta if outside else eta
+    cos_t_sqr = 1.0 - eta_ti * eta_ti * (1.0 - cos_i * cos_i)
+    cos_i_abs = abs(cos_i)
+    cos_t_abs = math.sqrt(max(cos_t_sqr, 0.0))
+    if eta == 1.0:
+        r = 0.0
+    elif cos_i_abs == 0.0 or cos_t_sqr <= 0.0:
+        r = 1.0
+    else:
+        a_s = (cos_i_abs - eta_it * cos_t_abs) / (cos_i_abs + eta_it * cos_t_abs)
+        a_p = (cos_t_abs - eta_it * cos_i_abs) / (cos_t_abs + eta_it * cos_i_abs)
+        r = 0.5 * (a_s * a_s + a_p * a_p)
+    cos_t = -cos_t_abs if cos_i >= 0.0 else cos_t_abs
+    return r, cos_t, eta_it, eta_ti
+
+
+@njit(cache=True, inline="always")
+def power_heuristic(a, b):
+    """MIS weight a^2 / (a^2 + b^2) of the strategy with pdf ``a``."""
+    a2 = a * a
+    return a2 / (a2 + b * b)
+
+
+@njit(cache=True)
+def texture_lookup(tex_pixels, tex_info, k, s, t):
+    """Bilinear, wrapping lookup of texture ``k`` at (s, t); row = (1 - t) * height (OBJ's v up).
+
+    ``tex_info[k] = (first pixel, width, height)`` into the row-major ``tex_pixels`` (N, 3).
+    """
+    first, w, h = tex_info[k, 0], tex_info[k, 1], tex_info[k, 2]
+    x = s * w - 0.5
+    y = (1.0 - t) * h - 0.5
+    x0 = math.floor(x)
+    y0 = math.floor(y)
+    fx = x - x0
+    fy = y - y0
+    ix0 = int(x0) % w
+    iy0 = int(y0) % h
+    ix1 = (ix0 + 1) % w
+    iy1 = (iy0 + 1) % h
+    out = [0.0, 0.0, 0.0]
+    for c in range(3):
+        top = (1.0 - fx) * tex_pixels[first + iy0 * w + ix0, c] + fx * tex_pixels[first + iy0 * w + ix1, c]
+        bottom = (1.0 - fx) * tex_pixels[first + iy1 * w + ix0, c] + fx * tex_pixels[first + iy1 * w + ix1, c]
+        out[c] = (1.0 - fy) * top + fy * bottom
+    return out[0], out[1], out[2]
+
+
+@njit(cache=True, inline="always")
+def triangle_point(corners, tri, b1, b2):
+    """Point with barycentrics (1 - b1 - b2, b1, b2) on triangle ``tri`` (float64)."""
+    b0 = 1.0 - b1 - b2
+    return (
+        b0 * corners[tri, 0] + b1 * corners[tri, 3] + b2 * corners[tri, 6],
+        b0 * corners[tri, 1] + b1 * corners[tri, 4] + b2 * corners[tri, 7],
+        b0 * corners[tri, 2] + b1 * corners[tri, 5] + b2 * corners[tri, 8],
+    )
+
+
+@njit(cache=True, inline="always")
+def geometric_normal(corners, tri):
+    """Unit normal of the counter-clockwise winding (the emitting side)."""
+    e1x = corners[tri, 3] - np.float64(corners[tri, 0])
+    e1y = corners[tri, 4] - np.float64(corners[tri, 1])
+    e1z = corners[tri, 5] - np.float64(corners[tri, 2])
+    e2x = corners[tri, 6] - np.float64(corners[tri, 0])
+    e2y = corners[tri, 7] - np.float64(corners[tri, 1])
+    e2z = corners[tri, 8] - np.float64(corners[tri, 2])
+    nx = e1y * e2z - e1z * e2y
+    ny = e1z * e2x - e1x * e2z
+    nz = e1x * e2y - e1y * e2x
+    norm = math.sqrt(nx * nx + ny * ny + nz * nz)
+    return nx / norm, ny / norm, nz / norm
+
+
+@njit(cache=True)
+def sample_emitter(emit_tri, emit_cdf, corners, select, u1, u2, pick):
+    """Pick an emitter triangle (by the CDF when ``select``, else the only one) and a uniform point.
+
+    Returns (triangle, point x, y, z) with the point area-uniform on the triangle.
+    """
+    k = 0
+    if select:
+        k = np.searchsorted(emit_cdf, pick, side="right")
+        k = min(k, len(emit_tri) - 1)
+    tri = emit_tri[k]
+    root = math.sqrt(u1)
+    b1 = root * (1.0 - u2)
+    b2 = root * u2
+    px, py, pz = triangle_point(corners, tri, b1, b2)
+    return tri, px, py, pz
+
+
+@njit(cache=True, inline="always")
+def offset_origin(px, py, pz, nx, ny, nz, dx, dy, dz):
+    """Mitsuba's ``offset_p``: move p off its surface along the normal, to the side of d."""
+    mag = (1.0 + max(abs(px), abs(py), abs(pz))) * RAY_EPSILON
+    if nx * dx + ny * dy + nz * dz < 0.0:
+        mag = -mag
+    return px + mag * nx, py + mag * ny, pz + mag * nz
+
+
+# ------------------------------------------------------------------ specialised kernels
+# The seven feature flags (specular, textures, normals, sky, emitters, emitter_selection,
+# aux) are forced to numba literal types with ``literally``: every combination compiles
+# (and is cached) as its own machine code, with the branches of absent features pruned.
+#   specular           mirror and dielectric branches (else every material is diffuse)
+#   textures           texture-coordinate interpolation and texture lookups
+#   normals            interpolated per-vertex shading normals (else the geometric one)
+#   sky                constant environment radiance for rays leaving the scene
+#   emitters           emission at hits and next-event estimation
+#   emitter_selection  pick among several emitter triangles by a CDF (else emitter 0)
+#   aux                albedo, normal and depth of the first hit
+
+
+@njit(cache=True, error_model="numpy")
+def path_sample(
+    specular, textures, normals, sky, emitters, emitter_selection, aux,
+    nodes, splits, refs, box, corners, tri_mat, tri_normals, tri_uv,
+    mat_kind, mat_albedo, mat_emission, mat_ior, mat_tex, tex_pixels, tex_info,
+    emit_tri, emit_cdf, tri_emit_pdf, sky_rgb,
+    ox, oy, oz, dx, dy, dz, key, max_depth, rr_depth, st_node, st_ent, st_ext,
+):
+    """One path from the camera ray (o, d), for the feature flags given first.
+
+    Returns (L rgb, first-hit albedo rgb, first-hit normal xyz, first-hit distance
+    (0 on a miss), shadow rays, bounce rays).
+    """
+    literally(specular)
+    literally(textures)
+    literally(normals)
+    literally(sky)
+    literally(emitters)
+    literally(emitter_selection)
+    literally(aux)
+    lr = 0.0  # radiance gathered so far
+    lg = 0.0
+    lb = 0.0
+    br = 1.0  # path throughput
+    bg = 1.0
+    bb = 1.0
+    eta = 1.0  # product of relative IORs crossed (for Russian roulette)
+    prev_pdf = 0.0  # solid-angle pdf of the last BSDF sample
+    prev_delta = True  # last bounce was specular (or the camera)
+    ar = ag = ab = 0.0
+    anx = any_ = anz = 0.0
+    first_t = 0.0
+    n_shadow = 0
+    n_bounce = 0
+    depth = 0
+    while True:
+        t, tri, u, v, _, _ = trace_ray(nodes, splits, refs, box, corners, ox, oy, oz, dx, dy, dz,
+                                       0.0, np.inf, False, st_node, st_ent, st_ext)
+        if depth > 0:
+            n_bounce += 1
+        if tri < 0:
+            if sky:
+                lr += br * sky_rgb[0]
+                lg += bg * sky_rgb[1]
+                lb += bb * sky_rgb[2]
+            break
+        m = tri_mat[tri]
+        px, py, pz = triangle_point(corners, tri, u, v)
+        gx, gy, gz = geometric_normal(corners, tri)
+        wx, wy, wz = -dx, -dy, -dz
+        # ---- emission seen by this ray (one-sided)
+        if emitters and tri_emit_pdf[tri] > 0.0:
+            cos_l = gx * wx + gy * wy + gz * wz
+            if cos_l > 0.0:
+                w = 1.0
+                if not prev_delta:
+                    w = power_heuristic(prev_pdf, tri_emit_pdf[tri] * t * t / cos_l)
+                lr += br * w * mat_emission[m, 0]
+                lg += bg * w * mat_emission[m, 1]
+                lb += bb * w * mat_emission[m, 2]
+        # ---- surface attributes
+        sx, sy, sz = gx, gy, gz
+        if normals and tri_normals.shape[0] == corners.shape[0]:  # the general kernel may get none
+            w0 = 1.0 - u - v
+            sx = w0 * tri_normals[tri, 0] + u * tri_normals[tri, 3] + v * tri_normals[tri, 6]
+            sy = w0 * tri_normals[tri, 1] + u * tri_normals[tri, 4] + v * tri_normals[tri, 7]
+            sz = w0 * tri_normals[tri, 2] + u * tri_normals[tri, 5] + v * tri_normals[tri, 8]
+            norm = math.sqrt(sx * sx + sy * sy + sz * sz)
+            if norm > 0.0:
+                sx, sy, sz = sx / norm, sy / norm, sz / norm
+            else:
+                sx, sy, sz = gx, gy, gz
+        kr, kg, kb = mat_albedo[m, 0], mat_albedo[m, 1], mat_albedo[m, 2]
+        if textures and mat_tex[m] >= 0:
+            w0 = 1.0 - u - v
+            s = w0 * tri_uv[tri, 0] + u * tri_uv[tri, 2] + v * tri_uv[tri, 4]
+            tt = w0 * tri_uv[tri, 1] + u * tri_uv[tri, 3] + v * tri_uv[tri, 5]
+            kr, kg, kb = texture_lookup(tex_pixels, tex_info, mat_tex[m], s, tt)
+        cos_i = sx * wx + sy * wy + sz * wz
+        if aux and depth == 0:
+            ar, ag, ab = kr, kg, kb
+            flip = 1.0 if cos_i >= 0.0 else -1.0
+            anx, any_, anz = flip * sx, flip * sy, flip * sz
+            first_t = t
+        if max_depth >= 0 and depth + 1 >= max_depth:
+            break
+        base = CAMERA_DIMS + depth * DIMS_PER_BOUNCE
+        kind = mat_kind[m] if specular else KIND_DIFFUSE
+        if kind == KIND_DIFFUSE:
+            if cos_i < 0.0:  # two-sided: work on the side the ray came from
+                sx, sy, sz, cos_i = -sx, -sy, -sz, -cos_i
+            # ---- next-event estimation
+            if emitters:
+                ltri, qx, qy, qz = sample_emitter(emit_tri, emit_cdf, corners, emitter_selection,
+                                                  uniform(key, base + 1), uniform(key, base + 2),
+                                                  uniform(key, base))
+                ex, ey, ez = qx - px, qy - py, qz - pz
+                dist = math.sqrt(ex * ex + ey * ey + ez * ez)
+                if dist > 0.0:
+                    ex, ey, ez = ex / dist, ey / dist, ez / dist
+                    nlx, nly, nlz = geometric_normal(corners, ltri)
+                    cos_l = -(nlx * ex + nly * ey + nlz * ez)
+                    cos_o = sx * ex + sy * ey + sz * ez
+                    if cos_l > 0.0 and cos_o > 0.0 and tri_emit_pdf[ltri] > 0.0:
+                        sox, soy, soz = offset_origin(px, py, pz, gx, gy, gz, ex, ey, ez)
+                        hx, hy, hz = qx - sox, qy - soy, qz - soz
+                        hdist = math.sqrt(hx * hx + hy * hy + hz * hz)
+                        n_shadow += 1
+                        _, blocker, _, _, _, _ = trace_ray(
+                            nodes, splits, refs, box, corners, sox, soy, soz,
+                            hx / hdist, hy / hdist, hz / hdist, 0.0, hdist * (1.0 - SHADOW_EPSILON),
+                            True, st_node, st_ent, st_ext)
+                        if blocker < 0:
+                            pdf_light = tri_emit_pdf[ltri] * dist * dist / cos_l
+                            pdf_bsdf = cos_o * _INV_PI
+                            f = power_heuristic(pdf_light, pdf_bsdf) * pdf_bsdf / pdf_light
+                            lm = tri_mat[ltri]
+                            lr += br * kr * f * mat_emission[lm, 0]
+                            lg += bg * kg * f * mat_emission[lm, 1]
+                            lb += bb * kb * f * mat_emission[lm, 2]
+            # ---- BSDF sampling
+            dx, dy, dz = cosine_hemisphere(uniform(key, base + 4), uniform(key, base + 5), sx, sy, sz)
+            cos_o = sx * dx + sy * dy + sz * dz
+            if cos_o <= 0.0:
+                break
+            br *= kr
+            bg *= kg
+            bb *= kb
+            prev_pdf = cos_o * _INV_PI
+            prev_delta = False
+        elif kind == KIND_MIRROR:
+            if cos_i < 0.0:
+                sx, sy, sz, cos_i = -sx, -sy, -sz, -cos_i
+            dx, dy, dz = -wx + 2.0 * cos_i * sx, -wy + 2.0 * cos_i * sy, -wz + 2.0 * cos_i * sz
+            br *= kr
+            bg *= kg
+            bb *= kb
+            prev_delta = True
+        else:
+            r, cos_t, eta_it, eta_ti = fresnel_dielectric(cos_i, mat_ior[m])
+            if uniform(key, base + 3) <= r:
+                dx, dy, dz = -wx + 2.0 * cos_i * sx, -wy + 2.0 * cos_i * sy, -wz + 2.0 * cos_i * sz
+            else:
+                c = eta_ti * cos_i + cos_t
+                dx, dy, dz = -eta_ti * wx + c * sx, -eta_ti * wy + c * sy, -eta_ti * wz + c * sz
+                scale = eta_ti * eta_ti  # radiance is compressed into the denser medium
+                br *= kr * scale
+                bg *= kg * scale
+                bb *= kb * scale
+                eta *= eta_it
+            prev_delta = True
+        ox, oy, oz = offset_origin(px, py, pz, gx, gy, gz, dx, dy, dz)
+        depth += 1
+        b_max = max(br, bg, bb)
+        if b_max <= 0.0:
+            break
+        if depth >= rr_depth:
+            q = min(b_max * eta * eta, 0.95)
+            if uniform(key, base + 6) >= q:
+                break
+            br /= q
+            bg /= q
+            bb /= q
+    return lr, lg, lb, ar, ag, ab, anx, any_, anz, first_t, n_shadow, n_bounce
+
+
+@njit(cache=True, parallel=True, error_model="numpy")
+def render_tiles(
+    specular, textures, normals, sky, emitters, emitter_selection, aux,
+    nodes, splits, refs, box, corners, tri_mat, tri_normals, tri_uv,
+    mat_kind, mat_albedo, mat_emission, mat_ior, mat_tex, tex_pixels, tex_info,
+    emit_tri, emit_cdf, tri_emit_pdf, sky_rgb, cam,
+    width, height, spp, max_depth, rr_depth, seed, tile_size,
+    out_rgb, out_var, out_albedo, out_normal, out_depth, counts,
+):
+    """Render every pixel into the ``out_*`` buffers, in parallel over tiles.
+
+    ``out_var`` receives the variance of the pixel mean per channel,
+    ``s^2 / spp`` with the unbiased sample variance ``s^2`` (inf when spp = 1).
+    ``counts[tile]`` = (camera rays, shadow rays, bounce rays, paths).
+    """
+    literally(specular)
+    literally(textures)
+    literally(normals)
+    literally(sky)
+    literally(emitters)
+    literally(emitter_selection)
+    literally(aux)
+    tiles_x = (width + tile_size - 1) // tile_size
+    tiles_y = (height + tile_size - 1) // tile_size
+    for tile in prange(tiles_x * tiles_y):
+        st_node = np.empty(STACK_SIZE, np.int32)
+        st_ent = np.empty(STACK_SIZE, np.float64)
+        st_ext = np.empty(STACK_SIZE, np.float64)
+        ty0 = (tile // tiles_x) * tile_size
+        tx0 = (tile % tiles_x) * tile_size
+        n_shadow = 0
+        n_bounce = 0
+        for j in range(ty0, min(ty0 + tile_size, height)):
+            for i in range(tx0, min(tx0 + tile_size, width)):
+                pixel = j * width + i
+                sum_l = np.zeros(3)
+                sum_l2 = np.zeros(3)
+                sum_a = np.zeros(3)
+                sum_n = np.zeros(3)
+                sum_t = 0.0
+                hits = 0
+                for s in range(spp):
+                    key = sample_key(seed, pixel, s)
+                    dx, dy, dz = camera_direction(cam, width, height, i + uniform(key, 0), j + uniform(key, 1))
+                    lr, lg, lb, ar, ag, ab, nx, ny, nz, t, shadow, bounce = path_sample(
+                        specular, textures, normals, sky, emitters, emitter_selection, aux,
+                        nodes, splits, refs, box, corners, tri_mat, tri_normals, tri_uv,
+                        mat_kind, mat_albedo, mat_emission, mat_ior, mat_tex, tex_pixels, tex_info,
+                        emit_tri, emit_cdf, tri_emit_pdf, sky_rgb,
+                        cam[0], cam[1], cam[2], dx, dy, dz, key, max_depth, rr_depth, st_node, st_ent, st_ext,
+                    )
+                    sum_l[0] += lr
+                    sum_l[1] += lg
+                    sum_l[2] += lb
+                    sum_l2[0] += lr * lr
+                    sum_l2[1] += lg * lg
+                    sum_l2[2] += lb * lb
+                    if aux:
+                        sum_a[0] += ar
+                        sum_a[1] += ag
+                        sum_a[2] += ab
+                        sum_n[0] += nx
+                        sum_n[1] += ny
+                        sum_n[2] += nz
+                        if t > 0.0:
+                            sum_t += t
+                            hits += 1
+                    n_shadow += shadow
+                    n_bounce += bounce
+                for c in range(3):
+                    mean = sum_l[c] / spp
+                    out_rgb[j, i, c] = mean
+                    if spp > 1:
+                        out_var[j, i, c] = max(sum_l2[c] - sum_l[c] * mean, 0.0) / (spp - 1) / spp
+                    else:
+                        out_var[j, i, c] = np.inf
+                if aux:
+                    norm = math.sqrt(sum_n[0] ** 2 + sum_n[1] ** 2 + sum_n[2] ** 2)
+                    for c in range(3):
+                        out_albedo[j, i, c] = sum_a[c] / spp
+                        out_normal[j, i, c] = sum_n[c] / norm if norm > 0.0 else 0.0
+                    out_depth[j, i] = sum_t / hits if hits > 0 else 0.0
+        pixels = (min(ty0 + tile_size, height) - ty0) * (min(tx0 + tile_size, width) - tx0)
+        counts[tile, COUNT_CAMERA] = pixels * spp
+        counts[tile, COUNT_SHADOW] = n_shadow
+        counts[tile, COUNT_BOUNCE] = n_bounce
+        counts[tile, COUNT_PATHS] = pixels * spp
