@@ -10,10 +10,11 @@ How to use::
 
 from kdtrace.config import DEFAULT_CONFIG, Config, load_config
 from kdtrace.kdtree import KDTree, build_kdtree
+from kdtrace.render import RenderResult, render, render_stereo
 from kdtrace.scene import Camera, Material, Scene, Sky
 from kdtrace.scenes import list_scenes, load_scene
 
 __all__ = [
     "Camera", "Config", "DEFAULT_CONFIG", "KDTree", "Material", "Scene", "Sky",
-    "build_kdtree", "list_scenes", "load_config", "load_scene",
+    "RenderResult", "build_kdtree", "list_scenes", "load_config", "load_scene", "render", "render_stereo",
 ]

@@ -2,7 +2,8 @@
 
 Subcommands: ``scenes`` (list scene descriptions), ``build`` (build and cache the
 KD-trees of a scene, print their statistics), ``check-embree`` (hit-for-hit agreement
-with Embree), ``report`` (the main job: Table 1 for a profile).
+with Embree), ``render`` (path trace to EXR and PNG), ``report`` (the main job: Table 1
+for a profile).
 """
 
 from __future__ import annotations
@@ -58,6 +59,23 @@ def _check_embree(args, config) -> int:
     return 1 if unexplained else 0
 
 
+def _render(args, config) -> int:
+    from kdtrace.imageio import write_render
+    from kdtrace.render import render
+    from kdtrace.scenes import load_scene
+
+    scene = load_scene(args.scene)
+    with tqdm(total=1, unit="frame", desc=f"rendering {scene.name}") as bar:
+        result = render(scene, spp=args.spp, max_depth=args.max_depth, seed=args.seed,
+                        width=args.width, height=args.height, variant=args.variant)
+        bar.update()
+    paths = write_render(result, args.out, scene.name)
+    stats = result.stats
+    print(f"{scene.name}: {result.seconds:.2f} s, {stats.get('paths_per_second', 0):,.0f} paths/s; wrote "
+          + ", ".join(str(p) for p in paths.values()))
+    return 0
+
+
 def _report(args, config) -> int:
     from reports import table1
 
@@ -82,6 +100,7 @@ def _report(args, config) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    defaults = load_config()
     parser = argparse.ArgumentParser(prog="kdtrace", description=__doc__.splitlines()[0])
     parser.add_argument("--config", help="TOML file overriding kdtrace/defaults.toml")
     sub = parser.add_subparsers(dest="command", required=True)
@@ -99,6 +118,17 @@ def build_parser() -> argparse.ArgumentParser:
     check.add_argument("--rays", type=int, help="rays per kind (default from the configuration: 1,000,000)")
     check.add_argument("--seed", type=int)
     check.set_defaults(run=_check_embree)
+
+    render = sub.add_parser("render", help="path trace a scene and write EXR (linear) and PNG (sRGB) images")
+    render.add_argument("scene", help="scene name, .toml, .obj or .ply")
+    render.add_argument("--spp", type=int, help=f"samples per pixel (default {defaults.render.spp})")
+    render.add_argument("--max-depth", type=int, help="Mitsuba's convention: 2 direct light, 3 one bounce, -1 unbounded")
+    render.add_argument("--seed", type=int)
+    render.add_argument("--width", type=int, help="default: the scene camera's")
+    render.add_argument("--height", type=int, help="default: the scene camera's")
+    render.add_argument("--variant", choices=("local", "naive"), default="local")
+    render.add_argument("--out", default="renders", help="output folder")
+    render.set_defaults(run=_render)
 
     report = sub.add_parser("report", help="the main job: regenerate Table 1 for a profile")
     report.add_argument("--profile", default="quick", help="profile name from the configuration (quick, paper)")
