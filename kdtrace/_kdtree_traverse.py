@@ -150,7 +150,9 @@ def trace_ray(
             else:
                 near = left + 1
                 far = left
-            if d[axis] == 0.0:
+            if d[axis] == 0.0 or o[axis] == split:
+                # Parallel to the plane, or starting on it heading into `near`: one child.
+                # (Also avoids 0 * inf = NaN when 1/d overflows for a subnormal d.)
                 node = near
                 continue
             t_plane = (split - o[axis]) * inv_d[axis]

@@ -125,7 +125,7 @@ def validate_rays(origins, directions, tmin=0.0, tmax=np.inf):
     Raises
     ------
     ValueError
-        Wrong shapes, NaN/inf origins or directions, zero directions, or tmin > tmax.
+        Wrong shapes, NaN/inf origins or directions, zero directions, tmin < 0 or tmin > tmax.
     """
     origins = np.ascontiguousarray(origins, dtype=np.float64)
     directions = np.ascontiguousarray(directions, dtype=np.float64)
@@ -142,6 +142,8 @@ def validate_rays(origins, directions, tmin=0.0, tmax=np.inf):
     tmax = np.ascontiguousarray(np.broadcast_to(np.asarray(tmax, dtype=np.float64), (n,)))
     if np.any(np.isnan(tmin)) or np.any(np.isnan(tmax)) or np.any(tmin > tmax):
         raise ValueError("tmin and tmax must be ordered numbers (tmin <= tmax)")
+    if np.any(tmin < 0.0):
+        raise ValueError("tmin must be >= 0: the traversal only visits the ray ahead of its origin")
     return origins, directions, tmin, tmax
 
 

@@ -1,0 +1,389 @@
+"""Property-based numerical stress tests of both KD-trees against the float64 oracle.
+
+Scenes and rays come from ``tests/strategies.py``: scales 1e-4 .. 1e5 and far offsets,
+slivers, planar and duplicated triangles, scenes flat along an axis, rays on split
+planes, through vertices, along edges and axis-parallel (signed zeros). Every query
+is checked for sanity (no NaN; a finite t only with a triangle; tmin < t < tmax;
+barycentrics inside the triangle) and compared with
+:func:`kdtrace.oracle.intersect_brute_force` by :func:`references.agreement.compare_hits`
+/ :func:`~references.agreement.compare_occlusion`: a disagreement must be explained
+(edge/vertex, grazing, tmax boundary), never ``unexplained``. On generic scenes with
+random rays the triangle must be exactly the oracle's.
+
+All tests are deterministic (``derandomize=True``); the ``slow`` variant draws many
+more, larger examples (``pytest -m slow tests/test_kdtree_stress.py``).
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, Phase, given, settings
+from hypothesis import strategies as st
+
+from kdtrace._kdtree_build import LEAF
+from kdtrace.config import KDTreeConfig
+from kdtrace.kdtree import VARIANTS, build_kdtree
+from kdtrace.oracle import intersect_brute_force
+from kdtrace.scene import Material, Scene
+from references.agreement import (
+    EXPLANATIONS,
+    GRAZING,
+    UNEXPLAINED,
+    TriangleGeometry,
+    compare_hits,
+    compare_occlusion,
+    exact_hits,
+    position_tolerance,
+    t_tolerance,
+)
+from tests.strategies import (
+    GENERIC_KINDS,
+    RAY_KINDS,
+    StressScene,
+    make_rays,
+    scale_directions,
+    split_planes,
+    stress_scenes,
+    tree_configs,
+)
+
+# NumPy warnings of the oracle / agreement re-tests on rays parallel to a triangle (inf - inf,
+# 1 / det overflowing for subnormal or 1e-20 directions) are expected.
+pytestmark = [
+    pytest.mark.filterwarnings("ignore:invalid value encountered:RuntimeWarning"),
+    pytest.mark.filterwarnings("ignore:overflow encountered:RuntimeWarning"),
+    pytest.mark.filterwarnings("ignore:divide by zero encountered:RuntimeWarning"),
+]
+
+#: Slack on the barycentric range checks (the trees test u, v exactly; this only guards the asserts).
+BARY_EPS = 1e-12
+
+
+def fast(max_examples: int):
+    """Deterministic settings for CI; no shrinking (a failure message already names the
+    scene parameters and the failing rays, and shrinking costs minutes on 2 cores)."""
+    return settings(
+        max_examples=max_examples, deadline=None, derandomize=True, database=None,
+        phases=[Phase.explicit, Phase.generate],
+        suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large],
+    )
+
+
+def build_trees(scene: Scene, config) -> dict:
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)  # zero-area triangles left out (expected here)
+        return {variant: build_kdtree(scene, variant, config, cache=False) for variant in VARIANTS}
+
+
+def oracle(scene: Scene, origins, directions, tmin=0.0, tmax=np.inf):
+    return intersect_brute_force(
+        scene.vertices, scene.triangles, origins, directions, tmin=tmin, tmax=tmax, skip=scene.degenerate_mask()
+    )
+
+
+def _describe(case: StressScene, variant: str, rays: np.ndarray, origins, directions, ours, theirs, labels=None) -> str:
+    lines = [f"{case!r}, variant {variant}: {len(rays)} bad rays, first ones:"]
+    for i in rays[:3]:
+        lines.append(
+            f"  ray {i}: o={origins[i].tolist()!r} d={directions[i].tolist()!r} "
+            f"ours=(t={ours[0][i]!r}, tri={int(ours[1][i])}) oracle=(t={theirs[0][i]!r}, tri={int(theirs[1][i])})"
+            + (f" label={labels[i]!r}" if labels is not None else "")
+        )
+    return "\n".join(lines)
+
+
+def check_sane(scene: Scene, answer, tmin, tmax) -> None:
+    """No NaN, hits only with a (non-degenerate) triangle, tmin < t < tmax, u, v inside the triangle."""
+    t, tri, u, v = answer
+    n = len(t)
+    tmin = np.broadcast_to(tmin, (n,))
+    tmax = np.broadcast_to(tmax, (n,))
+    assert not np.isnan(t).any() and not np.isnan(u).any() and not np.isnan(v).any()
+    hit = tri >= 0
+    np.testing.assert_array_equal(np.isfinite(t), hit)
+    assert np.all(t[~hit] == np.inf)
+    assert np.all(tri < len(scene.triangles))
+    assert not scene.degenerate_mask()[tri[hit]].any(), "a zero-area triangle was reported"
+    assert np.all((t[hit] > tmin[hit]) & (t[hit] < tmax[hit]))
+    assert np.all((u[hit] >= -BARY_EPS) & (v[hit] >= -BARY_EPS) & (u[hit] + v[hit] <= 1.0 + BARY_EPS))
+
+
+def in_plane(geometry: TriangleGeometry, tri: np.ndarray, origins, directions, t) -> np.ndarray:
+    """Rays lying in triangle ``tri``'s plane up to float32 noise: parallel to it (|cos| below
+    the triangle's grazing threshold) and within the position tolerance of the plane both at
+    the origin and at the reported distance ``t`` (0 where not finite)."""
+    cos = exact_hits(geometry, tri, origins, directions)["cos"]
+    t = np.where(np.isfinite(t), t, 0.0)
+    tol = position_tolerance(origins, directions, t, geometry.scale)
+    normal = geometry.normal[tri]
+    at_origin = np.einsum("ij,ij->i", origins - geometry.v0[tri], normal)
+    at_hit = at_origin + t * np.einsum("ij,ij->i", directions, normal)
+    return (np.abs(cos) <= geometry.grazing_cos[tri]) & (np.abs(at_origin) <= tol) & (np.abs(at_hit) <= tol)
+
+
+def explain_in_plane(geometry: TriangleGeometry, labels, answers, origins, directions):
+    """Label GRAZING the unexplained rays whose reported triangles all lie in the ray's plane.
+
+    ``compare_hits`` / ``compare_occlusion`` cannot explain those: their float64 re-test
+    of a ray lying in the triangle's plane divides by a (near-)zero determinant, the
+    barycentrics are NaN or noise and no explanation, not even grazing, applies, although
+    any hit reported on such a triangle (at any t) is rounding noise: e.g. rays along an edge.
+    ``answers``: the (t, tri) pairs of both sides.
+    """
+    labels = labels.copy()
+    for i in np.flatnonzero(labels == UNEXPLAINED):
+        reported = [(t[i], tri[i]) for t, tri in answers if tri[i] >= 0]
+        if not reported:
+            continue
+        t = np.array([r[0] for r in reported], dtype=np.float64)
+        tris = np.array([r[1] for r in reported], dtype=np.int64)
+        o = np.broadcast_to(origins[i], (len(tris), 3))
+        d = np.broadcast_to(directions[i], (len(tris), 3))
+        if in_plane(geometry, tris, o, d, t).all():
+            labels[i] = GRAZING
+    return labels
+
+
+def check_intersect(case: StressScene, trees: dict, origins, directions, tmin=0.0, tmax=np.inf, exact=False) -> dict:
+    """Closest hits of every tree vs the oracle: sane answers, no unexplained disagreement.
+
+    ``exact``: the rays are generic (random rays on triangles in general position), so
+    every ray must report the oracle's triangle unless it is explained (edge, grazing,
+    tmax); ties at the same distance are not accepted either.
+    Returns the oracle's answer.
+    """
+    scene = case.scene
+    theirs = oracle(scene, origins, directions, tmin, tmax)
+    geometry = TriangleGeometry.of(scene)
+    for variant, tree in trees.items():
+        ours = tree.intersect(origins, directions, tmin, tmax)
+        check_sane(scene, ours, tmin, tmax)
+        labels = compare_hits(scene, origins, directions, ours, theirs, tmax=tmax, geometry=geometry).labels
+        labels = explain_in_plane(geometry, labels, [ours[:2], theirs[:2]], origins, directions)
+        bad = np.flatnonzero(labels == UNEXPLAINED)
+        assert len(bad) == 0, _describe(case, variant, bad, origins, directions, ours, theirs, labels)
+        # Same triangle => the same float64 Möller–Trumbore: the distances agree to float64
+        # rounding, i.e. far below the float32 tolerance of compare_hits (2**-29 of it).
+        same = np.flatnonzero((ours[1] == theirs[1]) & (ours[1] >= 0))
+        same = same[~in_plane(geometry, ours[1][same], origins[same], directions[same], theirs[0][same])]
+        cos = exact_hits(geometry, ours[1][same], origins[same], directions[same])["cos"]
+        slack = np.maximum(1e-9 * theirs[0][same], 1e-6 * t_tolerance(origins[same], directions[same], theirs[0][same], cos, geometry.scale))
+        off = same[np.abs(ours[0][same] - theirs[0][same]) > slack]
+        assert len(off) == 0, "same triangle, different t: " + _describe(case, variant, off, origins, directions, ours, theirs)
+        if exact:
+            wrong = np.flatnonzero((ours[1] != theirs[1]) & ~np.isin(labels, EXPLANATIONS))
+            assert len(wrong) == 0, _describe(case, variant, wrong, origins, directions, ours, theirs, labels)
+    return theirs
+
+
+def check_occluded(case: StressScene, trees: dict, origins, directions, tmax) -> None:
+    """``occluded`` of every tree vs ``isfinite(oracle t)`` for the same tmax; disagreements explained."""
+    scene = case.scene
+    expected = np.isfinite(oracle(scene, origins, directions, 0.0, tmax)[0])
+    geometry = TriangleGeometry.of(scene)
+    for variant, tree in trees.items():
+        blocked = tree.occluded(origins, directions, tmax)
+        assert blocked.dtype == bool and blocked.shape == expected.shape
+        labels = compare_occlusion(scene, origins, directions, tmax, blocked, expected, geometry=geometry).labels
+        if (labels == UNEXPLAINED).any():  # in-plane occluders: see explain_in_plane (ours = closest hit below tmax)
+            closest = tree.intersect(origins, directions, 0.0, tmax)
+            labels = explain_in_plane(geometry, labels, [closest[:2]], origins, directions)
+        bad = np.flatnonzero(labels == UNEXPLAINED)
+        assert len(bad) == 0, (
+            f"{case!r}, variant {variant}: occluded disagrees on {len(bad)} rays, first: "
+            f"o={origins[bad[0]].tolist()!r} d={directions[bad[0]].tolist()!r} tmax={tmax[bad[0]]!r} "
+            f"ours={bool(blocked[bad[0]])} oracle={bool(expected[bad[0]])}"
+        )
+
+
+def shadow_tmax(rng: np.random.Generator, t_oracle: np.ndarray, span: float) -> np.ndarray:
+    """Segment lengths around the closest hits: before it, beyond it, exactly at it, or anywhere."""
+    n = len(t_oracle)
+    t_ref = np.where(np.isfinite(t_oracle), t_oracle, span)
+    choice = rng.integers(0, 4, size=n)
+    return np.select(
+        [choice == 0, choice == 1, choice == 2],
+        [t_ref * rng.uniform(0.0, 1.0, n), t_ref * rng.uniform(1.0, 2.0, n), t_ref],
+        rng.uniform(0.0, 2.0, n) * span,
+    )
+
+
+def _span(scene: Scene, directions: np.ndarray) -> float:
+    lo, hi = scene.bounds
+    return float(np.linalg.norm(hi - lo) + np.abs(hi).max() * 1e-6) / float(np.linalg.norm(directions, axis=1).min())
+
+
+def run_case(case: StressScene, config, ray_kind: str, n_rays: int, seed: int, occlusion: bool = True, exact=False,
+             direction_scale: float = 1.0, tiny: float = 0.0) -> None:
+    """Build both variants, make ``n_rays`` rays of ``ray_kind`` (directions scaled, zero
+    components replaced by +-tiny), check intersect and (optionally) occluded vs the oracle."""
+    trees = build_trees(case.scene, config)
+    origins, directions = make_rays(ray_kind, case.scene, trees["naive"], n_rays, seed)
+    if direction_scale != 1.0 or tiny:
+        directions = scale_directions(np.random.default_rng(seed + 3), directions, direction_scale, tiny)
+    theirs = check_intersect(case, trees, origins, directions, exact=exact)
+    if ray_kind == "interior":  # not vacuous: rays aimed at triangles do hit
+        assert np.mean(theirs[1] >= 0) > 0.5
+    if occlusion:
+        rng = np.random.default_rng(seed + 7)
+        tmax = shadow_tmax(rng, theirs[0], _span(case.scene, directions))
+        check_occluded(case, trees, origins, directions, tmax)
+
+
+# ------------------------------------------------------------------ fast properties
+@fast(12)
+@given(case=stress_scenes(kinds=GENERIC_KINDS, max_triangles=800, allow_duplicates=False), config=tree_configs, seed=st.integers(0, 2**16))
+def test_random_rays_on_generic_scenes_report_the_oracles_triangle(case, config, seed):
+    """Random rays, triangles in general position, any scale/offset: the very same triangle
+    as the oracle on every ray that is not near an edge/vertex/grazing."""
+    run_case(case, config, "random", 600, seed, exact=True)
+
+
+@fast(14)
+@given(case=stress_scenes(max_triangles=400), config=tree_configs, seed=st.integers(0, 2**16))
+def test_axis_parallel_rays_with_signed_zeros(case, config, seed):
+    """One or two direction components exactly +0.0 or -0.0, on every scene kind."""
+    run_case(case, config, "axis_parallel", 400, seed)
+
+
+@fast(14)
+@given(case=stress_scenes(max_triangles=400), config=tree_configs, seed=st.integers(0, 2**16))
+def test_origins_on_split_planes(case, config, seed):
+    """Origins exactly on one or two of the tree's split planes, directions in/along/across them."""
+    run_case(case, config, "split_plane", 400, seed)
+
+
+@fast(12)
+@given(case=stress_scenes(max_triangles=400), config=tree_configs, seed=st.integers(0, 2**16))
+def test_rays_through_vertices(case, config, seed):
+    """Axis-parallel rays passing exactly through float32 vertices, rays aimed at and starting on them."""
+    run_case(case, config, "vertex", 400, seed)
+
+
+@fast(12)
+@given(case=stress_scenes(max_triangles=400), config=tree_configs, seed=st.integers(0, 2**16))
+def test_rays_along_and_across_edges(case, config, seed):
+    """Origins on the edges' lines (inside and beyond), along the edge, across it, aimed at it."""
+    run_case(case, config, "edge", 400, seed)
+
+
+@fast(10)
+@given(case=stress_scenes(max_triangles=400), config=tree_configs, seed=st.integers(0, 2**16))
+def test_rays_aimed_at_triangle_interiors(case, config, seed):
+    """Rays aimed at interior points (half axis-parallel): mostly clear hits, plenty of hits to compare."""
+    run_case(case, config, "interior", 400, seed)
+
+
+@fast(10)
+@given(
+    case=stress_scenes(kinds=("flat_grid", "terraces", "boxes", "coplanar", "flat_soup"), max_triangles=300),
+    config=tree_configs,
+    seed=st.integers(0, 2**16),
+    ray_kind=st.sampled_from(RAY_KINDS),
+    tmin_fraction=st.sampled_from([0.0, 1e-3, 0.3]),
+)
+def test_planar_scenes_with_tmin(case, config, seed, ray_kind, tmin_fraction):
+    """Triangles lying in split planes / flat scenes, every ray kind, and a positive tmin."""
+    trees = build_trees(case.scene, config)
+    origins, directions = make_rays(ray_kind, case.scene, trees["naive"], 300, seed)
+    tmin = tmin_fraction * _span(case.scene, directions)
+    check_intersect(case, trees, origins, directions, tmin=tmin)
+
+
+def test_split_planes_exist_for_the_split_plane_rays():
+    """Guard against a vacuous split-plane test: the strategies' trees do split."""
+    from tests.strategies import build_scene
+
+    scene = build_scene("terraces", 8, 3, scale=1e3, offset=(1e5, 0.0, -2e4))
+    trees = build_trees(scene, None)
+    axes, positions = split_planes(trees["local"])
+    assert len(axes) > 10 and set(axes.tolist()) == {0, 1, 2}
+    # Flat terraces lie exactly in some z split planes.
+    z_levels = np.unique(scene.vertices[:, 2].astype(np.float64))
+    assert np.isin(positions[axes == 2], z_levels).any()
+
+
+@fast(30)
+@given(
+    case=stress_scenes(max_triangles=300),
+    config=tree_configs,
+    seed=st.integers(0, 2**16),
+    ray_kind=st.sampled_from(RAY_KINDS),
+    exponent=st.sampled_from([0, -20, -6, 6, 20]),
+    tiny=st.sampled_from([0.0, 1e-300, 1e-310, 5e-324]),
+)
+def test_direction_magnitudes_and_tiny_components(case, config, seed, ray_kind, exponent, tiny):
+    """Non-unit directions (|d| = 1e-20 .. 1e20; t scales as 1/|d|) and zero components
+    replaced by +-tiny, down to the smallest subnormal (1 / d overflows to inf there)."""
+    run_case(case, config, ray_kind, 300, seed, direction_scale=10.0**exponent, tiny=tiny)
+
+
+# ------------------------------------------------------------------ known problems (reproducers)
+@pytest.mark.parametrize("variant", VARIANTS)
+def test_negative_tmin_is_honoured_or_rejected(variant):
+    """Two slanted triangles split apart at z = 1; a ray from z = 5 along +z with tmin = -10.
+    The oracle's closest hit is triangle 0 at t = -4.75 (behind the origin); the trees must
+    find it too or refuse tmin < 0 with a ValueError. They return triangle 1 at t = 4.25."""
+    vertices = np.array([[0, 0, 0], [1, 0, 1], [0, 1, 0], [0, 0, 9], [1, 0, 10], [0, 1, 9]], np.float32)
+    scene = Scene("neg-tmin", vertices, np.arange(6).reshape(2, 3), np.zeros(2), [Material("m")])
+    origins = np.array([[0.25, 0.25, 5.0]])
+    directions = np.array([[0.0, 0.0, 1.0]])
+    expected = intersect_brute_force(scene.vertices, scene.triangles, origins, directions, tmin=-10.0)
+    assert expected[1][0] == 0 and expected[0][0] == -4.75
+    tree = build_kdtree(scene, variant, KDTreeConfig(min_leaf_size=1), cache=False)
+    assert tree.node_meta[0] != LEAF and tree.node_split[0] == 1.0  # the split the ray starts beyond
+    try:
+        t, tri, _, _ = tree.intersect(origins, directions, tmin=-10.0)
+    except ValueError:
+        return
+    assert (tri[0], t[0]) == (0, -4.75)
+
+
+@pytest.mark.parametrize("variant", VARIANTS)
+@pytest.mark.parametrize("dz", [5e-324, -5e-324, 1e-310])
+def test_subnormal_direction_component_with_origin_on_split_plane(variant, dz):
+    """A ray starting exactly on a z split plane with a subnormal d_z (|d_z| < 1/DBL_MAX).
+
+    The root split (x = -1) pushes the wall's subtree; deeper, the ray's origin lies on the
+    z = -0.8 split. ``inv_d = 1 / d_z`` overflows to +-inf, so ``t_plane = (split - o_z) * inv_d``
+    is ``0 * inf = NaN``: every comparison is false, the NaN lands on the stack and as ``ext``,
+    and the pop test ``st_ent <= best_t`` (False for NaN) then empties the stack, dropping the
+    wall. Expected: triangle 0 (the wall) at t = 2.5, a clear hit in the middle of it.
+    """
+    vertices = np.array([
+        [1, -1, -1], [1, 1, -1], [1, 0, 1],                          # 0: wall at x = 1
+        [-1.2, -0.1, -1], [-1.0, 0.1, -1], [-1.1, 0.0, -0.8],        # 1, 2: small triangles that
+        [-1.2, -0.1, 0.8], [-1.0, 0.1, 0.8], [-1.1, 0.0, 1.0],       #   make z splits at x < -1
+    ], np.float32)
+    scene = Scene("subnormal-dz", vertices, np.arange(9).reshape(3, 3), np.zeros(3), [Material("m")])
+    tree = build_kdtree(scene, variant, KDTreeConfig(min_leaf_size=1), cache=False)
+    z_split = float(np.float32(-0.8))
+    assert z_split in tree.node_split[(tree.node_meta != LEAF) & ((tree.node_meta & 3) == 2)].astype(np.float64)
+    origins = np.array([[-1.5, 0.05, z_split]])
+    directions = np.array([[1.0, 0.0, dz]])
+    expected = intersect_brute_force(scene.vertices, scene.triangles, origins, directions)
+    assert (expected[1][0], expected[0][0]) == (0, 2.5)
+    t, tri, _, _ = tree.intersect(origins, directions)
+    assert (tri[0], t[0]) == (0, 2.5), f"got t={t[0]}, tri={tri[0]}"
+    assert tree.occluded(origins, directions, 3.0)[0]
+
+
+# ------------------------------------------------------------------ slow variant
+@pytest.mark.slow
+@settings(max_examples=200, deadline=None, derandomize=True, database=None,
+          suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
+@given(
+    case=stress_scenes(max_triangles=2000),
+    config=tree_configs,
+    seed=st.integers(0, 2**16),
+    ray_kind=st.sampled_from(RAY_KINDS),
+    exponent=st.sampled_from([0, 0, 0, -20, -6, 6, 20]),
+    tiny=st.sampled_from([0.0, 0.0, 0.0, 1e-300, 1e-310, 5e-324]),
+)
+def test_stress_many_examples(case, config, seed, ray_kind, exponent, tiny):
+    """Every scene kind x every ray kind x direction magnitudes, larger scenes, many more examples."""
+    exact = ray_kind == "random" and case.params["kind"] in GENERIC_KINDS and not case.params.get("duplicates")
+    run_case(case, config, ray_kind, 1500, seed, exact=exact, direction_scale=10.0**exponent, tiny=tiny)
