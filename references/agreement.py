@@ -138,7 +138,7 @@ class TriangleGeometry:
         safe = np.where(degenerate, 1.0, twice_area)
         l_max = np.linalg.norm(np.stack([e1, e2, corners[:, 2] - corners[:, 1]], 1), axis=2).max(1)
         h_min = np.where(degenerate, 0.0, safe / np.maximum(l_max, np.finfo(float).tiny))
-        with np.errstate(divide="ignore"):
+        with np.errstate(divide="ignore", invalid="ignore"):  # zero-area rows are masked
             grazing_cos = np.where(degenerate, np.inf, ROUNDING_STEPS * UNIT_ROUNDOFF * l_max / h_min)
         return cls(
             v0=corners[:, 0],
