@@ -12,6 +12,7 @@ import hashlib
 import json
 import os
 import tempfile
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -34,32 +35,36 @@ def content_key(*parts: Any) -> str:
     return digest.hexdigest()
 
 
-def atomic_write_bytes(path: Path, data: bytes) -> None:
-    """Write ``data`` to ``path`` through a temporary file and a rename."""
+def atomic_write(path: str | Path, write: Callable[[str], None]) -> Path:
+    """Call ``write(temporary_path)`` beside ``path`` (same suffix), then rename it into place.
+
+    The temporary file lives in the destination folder, so the rename is atomic: readers
+    see the old file or the complete new one, never a partial write. Files are made
+    world-readable (0644), since results and caches are meant to be shared.
+    """
+    path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    handle, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    handle, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=path.suffix)
+    os.close(handle)
     try:
-        with os.fdopen(handle, "wb") as stream:
-            stream.write(data)
-            stream.flush()
-            os.fsync(stream.fileno())
+        write(temporary)
+        os.chmod(temporary, 0o644)
         os.replace(temporary, path)
     except BaseException:
         Path(temporary).unlink(missing_ok=True)
         raise
+    return path
+
+
+def atomic_write_bytes(path: str | Path, data: bytes) -> Path:
+    """Write ``data`` to ``path`` atomically (see :func:`atomic_write`)."""
+    return atomic_write(path, lambda temporary: Path(temporary).write_bytes(data))
 
 
 def save_npz(path: Path, arrays: dict[str, np.ndarray], metadata: dict[str, Any]) -> None:
-    """Atomically save arrays plus a JSON metadata record to ``path``."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    handle, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp.npz")
-    os.close(handle)
-    try:
-        np.savez(temporary, __metadata__=np.frombuffer(json.dumps(metadata).encode(), np.uint8), **arrays)
-        os.replace(temporary, path)
-    except BaseException:
-        Path(temporary).unlink(missing_ok=True)
-        raise
+    """Atomically save arrays plus a JSON metadata record to ``path`` (suffix ``.npz``)."""
+    encoded = np.frombuffer(json.dumps(metadata).encode(), np.uint8)
+    atomic_write(path, lambda temporary: np.savez(temporary, __metadata__=encoded, **arrays))
 
 
 def load_npz(path: Path) -> tuple[dict[str, np.ndarray], dict[str, Any]] | None:

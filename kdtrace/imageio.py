@@ -7,24 +7,11 @@ its name only when complete (temporary file in the same folder, then ``os.replac
 
 from __future__ import annotations
 
-import os
-from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 
-
-def _atomic_write(path: str | Path, write: Callable[[str], None]) -> Path:
-    """Call ``write(temporary path)`` and rename the result to ``path`` (same suffix kept)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    temporary = path.with_name(f".{path.stem}.tmp-{os.getpid()}{path.suffix}")
-    try:
-        write(str(temporary))
-        os.replace(temporary, path)
-    finally:
-        temporary.unlink(missing_ok=True)
-    return path
+from kdtrace.cache import atomic_write
 
 
 def _float_image(image: np.ndarray) -> np.ndarray:
@@ -45,7 +32,7 @@ def write_exr(path: str | Path, image: np.ndarray) -> Path:
     import mitsuba
 
     image = _float_image(image)
-    return _atomic_write(path, lambda name: mitsuba.Bitmap(image).write(name))
+    return atomic_write(path, lambda name: mitsuba.Bitmap(image).write(name))
 
 
 def read_exr(path: str | Path) -> np.ndarray:
@@ -69,7 +56,7 @@ def write_png(path: str | Path, image: np.ndarray, exposure: float = 1.0) -> Pat
     if image.ndim == 3 and image.shape[2] == 1:
         image = image[:, :, 0]
     encoded = np.round(srgb_encode(image * exposure) * 255.0).astype(np.uint8)
-    return _atomic_write(path, lambda name: Image.fromarray(encoded).save(name, format="PNG"))
+    return atomic_write(path, lambda name: Image.fromarray(encoded).save(name, format="PNG"))
 
 
 def write_render(result, directory: str | Path, stem: str = "render") -> dict[str, Path]:

@@ -48,7 +48,6 @@ import dataclasses
 import json
 import os
 import re
-import tempfile
 import time
 import warnings
 from dataclasses import dataclass
@@ -488,27 +487,6 @@ def _save_checkpoint(path: Path, key: str, state: dict[str, Any]) -> None:
 
 
 # ---------------------------------------------------------------------- images, CLI
-def srgb_preview(rgb: np.ndarray) -> np.ndarray:
-    """8-bit sRGB image of linear ``rgb`` (values clamped to [0, 1]), shape (H, W, 3) uint8."""
-    linear = np.clip(np.nan_to_num(rgb, nan=0.0), 0.0, 1.0)
-    encoded = np.where(linear <= 0.0031308, 12.92 * linear, 1.055 * np.power(linear, 1.0 / 2.4) - 0.055)
-    return np.round(encoded * 255.0).astype(np.uint8)
-
-
-def _atomic_image(path: Path, write: Any) -> None:
-    """Call ``write(temporary_path)`` next to ``path`` (same suffix) and rename it into place."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    handle, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=path.suffix)
-    os.close(handle)
-    try:
-        write(temporary)
-        os.chmod(temporary, 0o644)  # mkstemp creates 0600; images are for sharing
-        os.replace(temporary, path)
-    except BaseException:
-        Path(temporary).unlink(missing_ok=True)
-        raise
-
-
 def write_images(reference: Reference, stem: Path) -> list[Path]:
     """Write ``stem.exr`` (linear RGB), ``stem.variance.exr`` and ``stem.png`` (sRGB preview).
 
@@ -524,13 +502,12 @@ def write_images(reference: Reference, stem: Path) -> list[Path]:
     list of Path
         The files written (each atomically).
     """
-    import imageio.v3 as iio
-    import mitsuba as mi
+    from kdtrace.imageio import write_exr, write_png
 
     paths = [stem.with_name(stem.name + suffix) for suffix in (".exr", ".variance.exr", ".png")]
-    _atomic_image(paths[0], lambda name: mi.Bitmap(np.ascontiguousarray(reference.rgb)).write(name))
-    _atomic_image(paths[1], lambda name: mi.Bitmap(np.ascontiguousarray(reference.variance)).write(name))
-    _atomic_image(paths[2], lambda name: iio.imwrite(name, srgb_preview(reference.rgb), extension=".png"))
+    write_exr(paths[0], reference.rgb)
+    write_exr(paths[1], reference.variance)
+    write_png(paths[2], reference.rgb)
     return paths
 
 

@@ -22,22 +22,19 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
-import os
-import tempfile
 import warnings
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import numpy as np
 
-from kdtrace.config import DEFAULT_CONFIG
+from kdtrace.cache import atomic_write, cache_root
 from kdtrace.scene import Material, Scene
 
 #: Bumped whenever a loader's output changes, so stale cache entries are never read.
 LOADER_VERSION = "kdtrace-io-1"
 
 #: Environment variable overriding the cache directory.
-CACHE_ENV = "KDTRACE_CACHE"
 
 
 class SceneError(ValueError):
@@ -172,9 +169,8 @@ def fan_triangulate(corner_counts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 # ------------------------------------------------------------------------------- caching
 def cache_directory() -> Path:
-    """Folder of the mesh cache: ``$KDTRACE_CACHE/meshes`` or the configured directory."""
-    root = os.environ.get(CACHE_ENV) or DEFAULT_CONFIG.cache.directory
-    return Path(root) / "meshes"
+    """Folder of the mesh cache: ``meshes`` under :func:`kdtrace.cache.cache_root`."""
+    return cache_root() / "meshes"
 
 
 def cache_key(sources: Sequence[tuple[str, bytes | None]]) -> str:
@@ -197,15 +193,7 @@ def _save_cached(path: Path, scene: Scene, messages: list[str]) -> None:
         "materials": [dataclasses.asdict(m) for m in scene.materials],
         "warnings": messages,
     }
-    path.parent.mkdir(parents=True, exist_ok=True)
-    handle, temporary = tempfile.mkstemp(prefix=path.stem, suffix=".tmp.npz", dir=path.parent)
-    try:
-        with os.fdopen(handle, "wb") as stream:
-            np.savez(stream, meta=np.array(json.dumps(meta)), **arrays)
-        os.replace(temporary, path)
-    except BaseException:
-        Path(temporary).unlink(missing_ok=True)
-        raise
+    atomic_write(path, lambda temporary: np.savez(temporary, meta=np.array(json.dumps(meta)), **arrays))
 
 
 def _load_cached(path: Path) -> Scene | None:
