@@ -18,12 +18,8 @@ from __future__ import annotations
 
 import ctypes
 import json
-import os
-import platform
-import tempfile
 import time
 from dataclasses import dataclass, field
-from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 from typing import Any, Callable
 
@@ -31,6 +27,8 @@ import numba
 import numpy as np
 from tabulate import tabulate
 
+from kdtrace import provenance
+from kdtrace.cache import atomic_write_bytes
 from kdtrace.kdtree import VARIANTS, KDTree, build_kdtree
 from kdtrace.oracle import intersect_brute_force
 from kdtrace.rays import primary_rays, random_rays
@@ -55,7 +53,6 @@ ORACLE_CHECK_RAYS = 256
 TREE_STATS = ("triangle_references", "leaf_references", "interior_references", "tree_bytes", "nodes", "max_depth", "sah_cost")
 #: Per-variant (or per ray kind) tables of one scene's summary.
 SUMMARY_TABLES = ("references", "tree_bytes", "build_seconds", "build_peak_memory_bytes", "mrays_per_s", "ratios")
-PACKAGES = ("kdtrace", "numpy", "numba", "embreex", "pytest-benchmark")
 
 
 class BenchmarkValidationError(AssertionError):
@@ -474,41 +471,13 @@ class Results:
 
 # ------------------------------------------------------------------ machine info and output
 def machine_info() -> dict[str, Any]:
-    """CPU model, core count, numba threads, Python, platform and the versions of :data:`PACKAGES`."""
-    cpu = platform.processor() or platform.machine()
-    cpuinfo = Path("/proc/cpuinfo")
-    if cpuinfo.exists():
-        models = [line.split(":", 1)[1].strip() for line in cpuinfo.read_text().splitlines() if line.startswith("model name")]
-        cpu = models[0] if models else cpu
-    versions = {}
-    for package in PACKAGES:
-        try:
-            versions[package] = version(package)
-        except PackageNotFoundError:
-            versions[package] = None
-    return {
-        "cpu": cpu,
-        "cores": os.cpu_count(),
-        "numba_threads": numba.get_num_threads(),
-        "python": platform.python_version(),
-        "platform": platform.platform(),
-        "packages": versions,
-    }
+    """CPU model, cores, numba threads, platform and package versions (:mod:`kdtrace.provenance`)."""
+    return {**provenance.machine(), "packages": provenance.package_versions()}
 
 
 def write_json_atomic(path: Path, data: Any) -> None:
-    """Write ``data`` as JSON to ``path`` through a temporary file in the same folder and ``os.replace``."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    handle, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(handle, "w") as stream:
-            json.dump(data, stream, indent=2)
-            stream.write("\n")
-        os.chmod(temporary, 0o644)
-        os.replace(temporary, path)
-    except BaseException:
-        Path(temporary).unlink(missing_ok=True)
-        raise
+    """Write ``data`` as JSON to ``path`` atomically (:func:`kdtrace.cache.atomic_write_bytes`)."""
+    atomic_write_bytes(path, (json.dumps(data, indent=2) + "\n").encode())
 
 
 def summary_document(results: Results, rays: int, seed: int) -> dict[str, Any]:
