@@ -76,6 +76,23 @@ def _render(args, config) -> int:
     return 0
 
 
+def _reference(args, config) -> int:
+    from references.mitsuba import main_reference
+
+    reference = main_reference(args.scene, args.spp, args.max_depth, args.seed, args.width, args.height,
+                               force=args.force, output_dir=args.out)
+    print(f"{args.scene}: {reference.spp} spp with Mitsuba {reference.variant} in {reference.seconds:.1f} s; images in {args.out}")
+    return 0
+
+
+def _compare_mitsuba(args, config) -> int:
+    from references.ztest import main_compare
+
+    summary = main_compare(args.scene, args.spp, args.ref_spp, args.max_depth, args.seed, args.width, args.height, args.out)
+    print(tabulate([{k: v for k, v in summary.items() if not isinstance(v, (dict, list))}], headers="keys", tablefmt="github"))
+    return 0 if summary.get("passed") else 1
+
+
 def _report(args, config) -> int:
     from reports import table1
 
@@ -129,6 +146,28 @@ def build_parser() -> argparse.ArgumentParser:
     render.add_argument("--variant", choices=("local", "naive"), default="local")
     render.add_argument("--out", default="renders", help="output folder")
     render.set_defaults(run=_render)
+
+    reference = sub.add_parser("reference", help="render (or fetch from the cache) a Mitsuba 3 reference image")
+    reference.add_argument("scene")
+    reference.add_argument("--spp", type=int, default=256)
+    reference.add_argument("--max-depth", type=int, default=defaults.render.max_depth)
+    reference.add_argument("--seed", type=int, default=0)
+    reference.add_argument("--width", type=int)
+    reference.add_argument("--height", type=int)
+    reference.add_argument("--force", action="store_true", help="render again even when cached")
+    reference.add_argument("--out", default="out/references")
+    reference.set_defaults(run=_reference)
+
+    compare = sub.add_parser("compare-mitsuba", help="per-pixel Z-test of our render against Mitsuba 3's")
+    compare.add_argument("scene")
+    compare.add_argument("--spp", type=int, default=256, help="our samples per pixel")
+    compare.add_argument("--ref-spp", type=int, default=256, help="Mitsuba's samples per pixel")
+    compare.add_argument("--max-depth", type=int, default=defaults.render.max_depth)
+    compare.add_argument("--seed", type=int, default=0)
+    compare.add_argument("--width", type=int, default=32)
+    compare.add_argument("--height", type=int, default=32)
+    compare.add_argument("--out", default="out/compare", help="folder for images, error and p-value maps")
+    compare.set_defaults(run=_compare_mitsuba)
 
     report = sub.add_parser("report", help="the main job: regenerate Table 1 for a profile")
     report.add_argument("--profile", default="quick", help="profile name from the configuration (quick, paper)")
