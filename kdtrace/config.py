@@ -144,6 +144,115 @@ class RenderConfig:
 
 
 @dataclass(frozen=True)
+class ReconstructionProfile:
+    """Dataset and training settings of the reconstruction networks (paper §4.2-§5.2, §6.1).
+
+    Attributes
+    ----------
+    positions : int
+        Camera positions drawn uniformly inside the user-movement region (paper: 20).
+    views_per_position : int
+        View directions per position: yaw turns of the default view direction about the
+        camera's up axis, ``yaw_step_degrees`` apart, in the order 0, +1, -1, +2, ... steps
+        (paper: 16 views, 22.5 degrees apart, a full turn).
+    yaw_step_degrees : float
+        Angle between neighbouring view directions, degrees.
+    region_fraction : float
+        Side of the cubic user-movement region around the default camera, as a fraction of
+        the diagonal of the scene's bounding box.
+    min_coverage : float
+        A view whose camera rays hit geometry in fewer than this fraction of pixels is
+        rejected (it sees almost nothing).
+    width, height : int
+        Resolution of every view, pixels (paper: 512 x 512).
+    spp, max_depth : int
+        Samples per pixel and path length (Mitsuba convention) of the noisy input.
+    reference : str
+        ``"mitsuba"`` (Mitsuba 3 ``path``) or ``"kdtrace"`` (our path tracer at ``reference_spp``).
+    reference_spp : int
+        Samples per pixel of the reference (paper: 1024-4096).
+    crop_size, crops_per_view : int
+        Side of the square training crops, pixels, and crops drawn per view (paper: 128, 32).
+    validation_fraction, test_fraction : float
+        Fractions of the accepted views held out for validation and test (split by view).
+    epochs, batch_size : int
+        Training length and mini-batch size (paper: 100, 32).
+    learning_rate : float
+        Adam step size.
+    superres_crop_size, superres_crops_per_image : int
+        Side of the superresolution target crops, pixels (paper: 256), and crops drawn per
+        photograph or rendered view.
+    superres_downsample : str
+        How the low-resolution input is made before bicubic upsampling: ``"area"`` (2x2 box
+        mean, what a half-resolution render with a box filter sees) or ``"bicubic"``
+        (antialiased bicubic).
+    seed : int
+        Seed of camera positions, render seeds, crops, splits, initialisation and shuffling.
+    """
+
+    positions: int = 20
+    views_per_position: int = 16
+    yaw_step_degrees: float = 22.5
+    region_fraction: float = 0.1
+    min_coverage: float = 0.25
+    width: int = 512
+    height: int = 512
+    spp: int = 4
+    max_depth: int = 3
+    reference: str = "mitsuba"
+    reference_spp: int = 1024
+    crop_size: int = 128
+    crops_per_view: int = 32
+    validation_fraction: float = 0.15
+    test_fraction: float = 0.15
+    epochs: int = 100
+    batch_size: int = 32
+    learning_rate: float = 1e-3
+    superres_crop_size: int = 256
+    superres_crops_per_image: int = 32
+    superres_downsample: str = "area"
+    seed: int = 20261122
+
+    def __post_init__(self) -> None:
+        counts = (self.positions, self.views_per_position, self.width, self.height, self.spp, self.reference_spp,
+                  self.crop_size, self.crops_per_view, self.epochs, self.batch_size, self.superres_crop_size,
+                  self.superres_crops_per_image)
+        if min(counts) < 1:
+            raise ValueError("reconstruction counts, sizes, spp, epochs and batch size must be >= 1")
+        if self.max_depth < 1 and self.max_depth != -1:
+            raise ValueError("reconstruction.max_depth must be >= 1 or -1 (unbounded)")
+        if self.reference not in ("mitsuba", "kdtrace"):
+            raise ValueError("reconstruction.reference must be 'mitsuba' or 'kdtrace'")
+        if self.superres_downsample not in ("area", "bicubic"):
+            raise ValueError("reconstruction.superres_downsample must be 'area' or 'bicubic'")
+        if self.superres_crop_size % 2:
+            raise ValueError("reconstruction.superres_crop_size must be even (2x downsampling)")
+        if not (0.0 <= self.region_fraction and 0.0 <= self.min_coverage <= 1.0 and self.learning_rate > 0.0):
+            raise ValueError("reconstruction.region_fraction >= 0, min_coverage in [0, 1], learning_rate > 0")
+        if not (0.0 < self.validation_fraction and 0.0 < self.test_fraction
+                and self.validation_fraction + self.test_fraction < 1.0):
+            raise ValueError("reconstruction validation and test fractions must be > 0 and sum below 1")
+
+
+@dataclass(frozen=True)
+class ReconstructionConfig:
+    """Named :class:`ReconstructionProfile` s (``[reconstruction.profiles.NAME]``)."""
+
+    profiles: dict[str, ReconstructionProfile] = dataclasses.field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "profiles", {
+            name: entry if isinstance(entry, ReconstructionProfile) else ReconstructionProfile(**entry)
+            for name, entry in self.profiles.items()})
+
+    def profile(self, name: str) -> ReconstructionProfile:
+        """The named profile; an unknown name lists the known ones."""
+        if name not in self.profiles:
+            raise ValueError(f"unknown reconstruction profile {name!r}; known: {', '.join(sorted(self.profiles))}")
+        return self.profiles[name]
+
+
+@dataclass(frozen=True)
 class Config:
     """The whole resolved configuration."""
 
@@ -151,6 +260,7 @@ class Config:
     cache: CacheConfig = CacheConfig()
     embree_check: EmbreeCheckConfig = EmbreeCheckConfig()
     render: RenderConfig = RenderConfig()
+    reconstruction: ReconstructionConfig = ReconstructionConfig()
     profiles: dict[str, ProfileConfig] = dataclasses.field(default_factory=dict)
 
     def profile(self, name: str) -> ProfileConfig:
@@ -169,6 +279,7 @@ _SECTIONS = {
     "cache": CacheConfig,
     "embree_check": EmbreeCheckConfig,
     "render": RenderConfig,
+    "reconstruction": ReconstructionConfig,
 }
 
 
@@ -179,8 +290,16 @@ def _merge(base: dict[str, Any], overlay: dict[str, Any], origin: str) -> dict[s
         if unknown:
             raise ValueError(f"{origin}: unknown keys in [profiles.{name}]: {sorted(unknown)}")
         merged["profiles"][name] = {**merged["profiles"].get(name, {}), **values}
+    if set(overlay.get("reconstruction", {})) - {"profiles"}:
+        raise ValueError(f"{origin}: [reconstruction] holds only profiles ([reconstruction.profiles.NAME])")
+    for name, values in overlay.get("reconstruction", {}).get("profiles", {}).items():
+        unknown = set(values) - {f.name for f in dataclasses.fields(ReconstructionProfile)}
+        if unknown:
+            raise ValueError(f"{origin}: unknown keys in [reconstruction.profiles.{name}]: {sorted(unknown)}")
+        profiles = merged.setdefault("reconstruction", {}).setdefault("profiles", {})
+        profiles[name] = {**profiles.get(name, {}), **values}
     for section, values in overlay.items():
-        if section == "profiles":
+        if section in ("profiles", "reconstruction"):
             continue
         if section not in _SECTIONS:
             raise ValueError(f"{origin}: unknown section [{section}]; known: {sorted(_SECTIONS)}")

@@ -1,0 +1,479 @@
+"""Training data of the reconstruction networks (paper §4.2-§4.3 and §5.2).
+
+**Precision Graphics datasets** (the denoiser). Per scene, ``positions`` camera positions
+are drawn uniformly inside the *user-movement region*, a cube centred on the scene's
+default camera whose side is ``region_fraction`` times the diagonal of the scene's
+bounding box. From each position, ``views_per_position`` views turn the default view
+direction about the camera's up axis by 0, +1, -1, +2, ... steps of ``yaw_step_degrees``
+(the paper: 20 positions x 16 views, 22.5 degrees apart, 512 x 512). Each view holds a
+noisy render of our path tracer (``spp``, ``max_depth``) with its albedo (the paper's
+diffuse map), shading normal and depth, and a reference (Mitsuba 3 by default, or our
+path tracer at ``reference_spp``). A view whose camera rays hit geometry in fewer than
+``min_coverage`` of the pixels sees almost nothing and is rejected before its reference
+is rendered. Accepted views are split into train / validation / test **by view** (the
+paper splits random crops; crops of one view in two splits would leak), and random
+square crops are drawn from the views of each split.
+
+Storage: ``cache_root()/datasets/<scene>-<key>/`` with one ``view-NNNN.npz`` per view
+(written atomically, so an interrupted run leaves no partial file and a rerun renders
+only the missing views) and ``manifest.json`` (scene hash, settings, seeds, views,
+splits, provenance), written last. The folder key hashes the scene's content, the
+profile's dataset settings and :data:`RECIPE_VERSION`, so a changed scene or setting
+gets a new folder and an unchanged one is reused.
+
+**Superresolution data** (§5.2). Natural photographs bundled with scikit-image (no
+download) plus reference renders; each RGB crop (the target) is reduced 2x (``"area"``:
+2x2 box mean, the half-resolution render the network will see; or ``"bicubic"``,
+antialiased) and bicubically upsampled back (:func:`reconstruction.models.bicubic_upsample`,
+clamped to [0, 1] like the inference path) to give the input. Targets are clipped to
+[0, 1] (the superresolution network works on display-range luma). Photos are
+sRGB-decoded to linear RGB like the renders. Training uses the photos and the renders
+of the training views; validation a held-out photo and the validation views; test only
+renders (test views).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import re
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from tqdm import tqdm
+
+from kdtrace.cache import (
+    atomic_write_bytes,
+    cache_root,
+    content_key,
+    load_npz,
+    save_npz,
+)
+from kdtrace.config import DEFAULT_CONFIG, ReconstructionProfile
+from kdtrace.provenance import stamp
+from kdtrace.scene import Camera, Scene
+
+#: Bump when the way views are made changes: old datasets become cache misses.
+RECIPE_VERSION = 1
+#: Profile fields a dataset depends on (the training fields do not change it).
+DATASET_FIELDS = ("positions", "views_per_position", "yaw_step_degrees", "region_fraction", "min_coverage",
+                  "width", "height", "spp", "max_depth", "reference", "reference_spp",
+                  "validation_fraction", "test_fraction", "seed")
+#: Buffers stored per accepted view: name -> channels.
+BUFFERS = {"noisy": 3, "albedo": 3, "normal": 3, "depth": 1, "reference": 3}
+SPLITS = ("train", "validation", "test")
+#: Photographs shipped inside scikit-image (``skimage/data/*``), no download needed.
+TRAIN_PHOTOS = ("astronaut", "coffee", "rocket", "retina", "immunohistochemistry")
+VALIDATION_PHOTOS = ("chelsea",)
+
+
+@dataclass(frozen=True)
+class ViewSpec:
+    """One candidate view of a dataset.
+
+    Attributes
+    ----------
+    index : int
+        Position in the candidate list (``position * views_per_position + yaw``).
+    position, yaw : int
+        Index of the camera position and of the yaw step.
+    yaw_degrees : float
+        Turn of the default view direction about the up axis, degrees.
+    camera : Camera
+        The pinhole, at the dataset's resolution.
+    noisy_seed, reference_seed : int
+        Seeds of the noisy render and of the reference, in [0, 2**32).
+    """
+
+    index: int
+    position: int
+    yaw: int
+    yaw_degrees: float
+    camera: Camera
+    noisy_seed: int
+    reference_seed: int
+
+    @property
+    def name(self) -> str:
+        """File stem of the view, ``view-NNNN``."""
+        return f"view-{self.index:04d}"
+
+
+@dataclass(frozen=True)
+class Dataset:
+    """A generated Precision Graphics dataset (see the module docstring).
+
+    Attributes
+    ----------
+    root : Path
+        Its folder.
+    manifest : dict
+        Contents of ``manifest.json``: ``key``, ``scene``, ``scene_hash``, ``settings``,
+        ``views`` (per candidate: name, camera, seeds, coverage, accepted), ``splits``
+        (split -> accepted view names) and ``provenance``.
+    """
+
+    root: Path
+    manifest: dict[str, Any]
+
+    @property
+    def key(self) -> str:
+        """Content key of the dataset (also in its folder name)."""
+        return self.manifest["key"]
+
+    def views(self, split: str | None = None) -> list[str]:
+        """Names of the accepted views, all or those of one split."""
+        if split is None:
+            return [name for part in SPLITS for name in self.manifest["splits"][part]]
+        if split not in SPLITS:
+            raise ValueError(f"unknown split {split!r}; known: {', '.join(SPLITS)}")
+        return list(self.manifest["splits"][split])
+
+    def load_view(self, name: str) -> dict[str, np.ndarray]:
+        """The buffers of one accepted view: name -> float32 (H, W, C) array (see :data:`BUFFERS`).
+
+        Raises
+        ------
+        ValueError
+            The view file is missing, unreadable or from another dataset.
+        """
+        loaded = load_npz(self.root / f"{name}.npz")
+        if loaded is None or loaded[1].get("key") != self.key or not loaded[1].get("accepted"):
+            raise ValueError(f"{self.root / name}.npz is missing, corrupt or not an accepted view of this dataset")
+        return loaded[0]
+
+
+# ------------------------------------------------------------------ views
+def _turn(vector: np.ndarray, axis: np.ndarray, degrees: float) -> np.ndarray:
+    """Rodrigues rotation of ``vector`` about the unit ``axis``."""
+    angle = math.radians(degrees)
+    return (vector * math.cos(angle) + np.cross(axis, vector) * math.sin(angle)
+            + axis * np.dot(axis, vector) * (1.0 - math.cos(angle)))
+
+
+def yaw_steps(count: int) -> list[int]:
+    """Yaw steps 0, +1, -1, +2, -2, ... (``count`` of them), nearest the default view first."""
+    return [(k + 1) // 2 * (1 if k % 2 else -1) for k in range(count)]
+
+
+def movement_region(scene: Scene, fraction: float) -> tuple[np.ndarray, np.ndarray]:
+    """Lower and upper corner of the user-movement cube around the default camera.
+
+    Parameters
+    ----------
+    scene : Scene
+    fraction : float
+        Side of the cube as a fraction of the bounding-box diagonal of the scene.
+
+    Returns
+    -------
+    lower, upper : (3,) float64 ndarray
+        Corners, scene units.
+    """
+    lower, upper = scene.bounds
+    half = 0.5 * fraction * float(np.linalg.norm(upper - lower))
+    centre = np.asarray(scene.camera.position, np.float64)
+    return centre - half, centre + half
+
+
+def candidate_views(scene: Scene, profile: ReconstructionProfile) -> list[ViewSpec]:
+    """All ``positions x views_per_position`` candidate views of ``scene`` (deterministic in the seed)."""
+    base = scene.camera
+    rng = np.random.default_rng([profile.seed, 1])
+    lower, upper = movement_region(scene, profile.region_fraction)
+    positions = rng.uniform(lower, upper, size=(profile.positions, 3))
+    forward = np.subtract(base.look_at, base.position).astype(np.float64)
+    axis = np.asarray(base.up, np.float64) / np.linalg.norm(base.up)
+    views = []
+    for p, position in enumerate(positions):
+        for y, step in enumerate(yaw_steps(profile.views_per_position)):
+            degrees = step * profile.yaw_step_degrees
+            camera = Camera(position=tuple(map(float, position)),
+                            look_at=tuple(map(float, position + _turn(forward, axis, degrees))),
+                            up=base.up, fov=base.fov, width=profile.width, height=profile.height)
+            index = p * profile.views_per_position + y
+            noisy_seed, reference_seed = np.random.SeedSequence([profile.seed, 2, index]).generate_state(2)
+            views.append(ViewSpec(index, p, y, float(degrees), camera, int(noisy_seed), int(reference_seed)))
+    return views
+
+
+def dataset_key(scene: Scene, profile: ReconstructionProfile) -> str:
+    """Content key of the dataset of ``scene`` under ``profile`` (scene, dataset settings, recipe)."""
+    settings = {name: getattr(profile, name) for name in DATASET_FIELDS}
+    return content_key("precision-graphics-dataset", RECIPE_VERSION, scene.content_hash(), settings)
+
+
+def dataset_dir(scene: Scene, profile: ReconstructionProfile) -> Path:
+    """Folder of the dataset of ``scene`` under ``profile``."""
+    stem = re.sub(r"[^A-Za-z0-9_.-]", "_", scene.name)
+    return cache_root() / "datasets" / f"{stem}-{dataset_key(scene, profile)[:24]}"
+
+
+def _resolve(profile: str | ReconstructionProfile) -> ReconstructionProfile:
+    return DEFAULT_CONFIG.reconstruction.profile(profile) if isinstance(profile, str) else profile
+
+
+def _render_view(scene: Scene, view: ViewSpec, profile: ReconstructionProfile) -> tuple[dict, dict]:
+    """Render one view: (arrays, metadata); arrays are empty when the view is rejected."""
+    from kdtrace.render import render
+
+    with warnings.catch_warnings():  # a view that sees nothing is rejected below
+        warnings.filterwarnings("ignore", message=".*camera looks at nothing")
+        noisy = render(scene, spp=profile.spp, max_depth=profile.max_depth, seed=view.noisy_seed,
+                       width=profile.width, height=profile.height, aux=True, camera=view.camera)
+    coverage = float(np.mean(noisy.depth > 0.0))
+    metadata = {"coverage": coverage, "accepted": coverage >= profile.min_coverage,
+                "noisy_seconds": noisy.seconds}
+    if not metadata["accepted"]:
+        return {}, metadata
+    if profile.reference == "mitsuba":
+        from references.mitsuba import render_reference
+
+        reference = render_reference(dataclasses.replace(scene, cameras=[view.camera]), spp=profile.reference_spp,
+                                     max_depth=profile.max_depth, seed=view.reference_seed,
+                                     width=profile.width, height=profile.height, cache=False)
+        metadata["reference_seconds"] = reference.seconds
+    else:
+        reference = render(scene, spp=profile.reference_spp, max_depth=profile.max_depth,
+                           seed=view.reference_seed, width=profile.width, height=profile.height, aux=False,
+                           camera=view.camera)
+        metadata["reference_seconds"] = reference.seconds
+    arrays = {"noisy": noisy.rgb, "albedo": noisy.albedo, "normal": noisy.normal,
+              "depth": noisy.depth[..., None], "reference": reference.rgb}
+    return {name: np.ascontiguousarray(value, np.float32) for name, value in arrays.items()}, metadata
+
+
+def split_views(names: list[str], profile: ReconstructionProfile) -> dict[str, list[str]]:
+    """Split accepted view names into train / validation / test (seeded shuffle, by view).
+
+    Each held-out split gets ``round(fraction * n)`` views but at least one.
+
+    Raises
+    ------
+    ValueError
+        Fewer than three accepted views (each split needs one).
+    """
+    if len(names) < 3:
+        raise ValueError(f"only {len(names)} accepted views; a train/validation/test split needs at least 3 "
+                         "(add positions or views, or lower min_coverage)")
+    order = [names[i] for i in np.random.default_rng([profile.seed, 3]).permutation(len(names))]
+    n_val = max(1, round(profile.validation_fraction * len(names)))
+    n_test = max(1, round(profile.test_fraction * len(names)))
+    if n_val + n_test >= len(names):
+        n_val = n_test = 1
+    return {"validation": sorted(order[:n_val]), "test": sorted(order[n_val:n_val + n_test]),
+            "train": sorted(order[n_val + n_test:])}
+
+
+def generate_dataset(scene: str | Scene, profile: str | ReconstructionProfile = "quick",
+                     progress: bool | None = None) -> Dataset:
+    """Generate (or reuse) the Precision Graphics dataset of one scene.
+
+    Parameters
+    ----------
+    scene : str or Scene
+        Scene name (``scenes/*.toml``) or a loaded scene; its first camera defines the
+        movement region and the default view direction.
+    profile : str or ReconstructionProfile
+        A profile of ``[reconstruction.profiles]`` or a profile object.
+    progress : bool, optional
+        Show a tqdm bar (None: only on a terminal).
+
+    Returns
+    -------
+    Dataset
+        Complete: every candidate view rendered or rejected, splits and manifest written.
+
+    Notes
+    -----
+    Resumable: views already on disk with this dataset's key are not rendered again; a
+    complete manifest makes the call a pure cache hit.
+    """
+    from kdtrace.scenes import load_scene
+
+    profile = _resolve(profile)
+    scene = load_scene(scene) if isinstance(scene, str) else scene
+    key = dataset_key(scene, profile)
+    root = dataset_dir(scene, profile)
+    manifest_path = root / "manifest.json"
+    if manifest_path.is_file():
+        try:
+            manifest = json.loads(manifest_path.read_text())
+        except (OSError, ValueError):
+            manifest = None
+        if manifest is not None and manifest.get("key") == key:
+            return Dataset(root, manifest)
+    records = []
+    views = candidate_views(scene, profile)
+    disable = None if progress is None else not progress
+    for view in tqdm(views, desc=f"dataset {scene.name}", unit="view", disable=disable):
+        path = root / f"{view.name}.npz"
+        loaded = load_npz(path)
+        if loaded is not None and loaded[1].get("key") == key:
+            metadata = loaded[1]
+        else:
+            arrays, metadata = _render_view(scene, view, profile)
+            metadata = {"key": key, "name": view.name, "index": view.index, "position": view.position,
+                        "yaw": view.yaw, "yaw_degrees": view.yaw_degrees, "camera": dataclasses.asdict(view.camera),
+                        "noisy_seed": view.noisy_seed, "reference_seed": view.reference_seed, **metadata}
+            metadata = json.loads(json.dumps(metadata))
+            save_npz(path, arrays, metadata)
+        records.append({name: value for name, value in metadata.items() if name != "key"})
+    accepted = [record["name"] for record in records if record["accepted"]]
+    manifest = {
+        "key": key, "recipe_version": RECIPE_VERSION, "scene": scene.name, "scene_hash": scene.content_hash(),
+        "settings": {name: getattr(profile, name) for name in DATASET_FIELDS},
+        "movement_region": [region.tolist() for region in movement_region(scene, profile.region_fraction)],
+        "views": records, "splits": split_views(accepted, profile),
+        "provenance": stamp(dataclasses.asdict(profile)),
+    }
+    atomic_write_bytes(manifest_path, json.dumps(manifest, indent=1).encode())
+    return Dataset(root, manifest)
+
+
+# ------------------------------------------------------------------ crops
+def _crop_corners(shape: tuple[int, int], size: int, count: int, rng: np.random.Generator) -> np.ndarray:
+    height, width = shape
+    if size > min(height, width):
+        raise ValueError(f"crop size {size} exceeds the image ({height}x{width})")
+    return np.stack([rng.integers(0, height - size + 1, count), rng.integers(0, width - size + 1, count)], axis=1)
+
+
+def crops(dataset: Dataset, split: str, crop_size: int, crops_per_view: int, seed: int,
+          buffers: tuple[str, ...] = tuple(BUFFERS)) -> dict[str, np.ndarray]:
+    """Random square crops of the views of one split.
+
+    Parameters
+    ----------
+    dataset : Dataset
+    split : {"train", "validation", "test"}
+    crop_size, crops_per_view : int
+        Side of the crops (pixels) and how many per view.
+    seed : int
+        Crop positions depend only on it and the view index.
+    buffers : tuple of str
+        Which of :data:`BUFFERS` to return.
+
+    Returns
+    -------
+    dict of str to ndarray
+        Buffer name -> float32 (N, C, crop_size, crop_size), N = views x crops_per_view,
+        linear values as rendered.
+
+    Raises
+    ------
+    ValueError
+        The split has no views, or the crop is larger than the views.
+    """
+    names = dataset.views(split)
+    if not names:
+        raise ValueError(f"dataset {dataset.root} has no {split} views")
+    out: dict[str, list[np.ndarray]] = {name: [] for name in buffers}
+    for name in names:
+        view = dataset.load_view(name)
+        rng = np.random.default_rng([seed, 4, int(name.split("-")[1])])
+        for top, left in _crop_corners(view["noisy"].shape[:2], crop_size, crops_per_view, rng):
+            for buffer in buffers:
+                out[buffer].append(view[buffer][top:top + crop_size, left:left + crop_size].transpose(2, 0, 1))
+    return {name: np.ascontiguousarray(np.stack(values), np.float32) for name, values in out.items()}
+
+
+# ------------------------------------------------------------------ superresolution
+def srgb_to_linear(srgb: np.ndarray) -> np.ndarray:
+    """IEC 61966-2-1 sRGB decoding of values in [0, 1] (float32, same shape)."""
+    srgb = np.asarray(srgb, np.float32)
+    return np.where(srgb <= 0.04045, srgb / 12.92, ((srgb + 0.055) / 1.055) ** 2.4).astype(np.float32)
+
+
+def photo(name: str) -> np.ndarray:
+    """A photograph bundled with scikit-image as linear RGB float32 (H, W, 3) in [0, 1]."""
+    import skimage.data
+
+    image = getattr(skimage.data, name)()
+    if image.ndim != 3 or image.shape[2] < 3:
+        raise ValueError(f"skimage.data.{name} is not an RGB photograph")
+    return srgb_to_linear(image[..., :3] / 255.0)
+
+
+def degrade(target: np.ndarray, method: str = "area") -> np.ndarray:
+    """The network input for ``target``: 2x downsampling then bicubic 2x upsampling.
+
+    Parameters
+    ----------
+    target : ndarray, float32, shape (N, C, H, W)
+        H and W even.
+    method : {"area", "bicubic"}
+        Downsampling: 2x2 box mean, or antialiased bicubic (PyTorch).
+
+    Returns
+    -------
+    ndarray, float32, shape (N, C, H, W)
+        Upsampled with :func:`reconstruction.models.bicubic_upsample` (the inference
+        path's bicubic) and clamped to [0, 1] as :func:`reconstruction.models.superresolve` does.
+    """
+    import torch
+    import torch.nn.functional as F
+
+    from reconstruction.models import bicubic_upsample
+
+    if target.ndim != 4 or target.shape[2] % 2 or target.shape[3] % 2:
+        raise ValueError(f"target must be (N, C, H, W) with even H and W, got {target.shape}")
+    tensor = torch.from_numpy(np.ascontiguousarray(target, np.float32))
+    if method == "area":
+        small = F.avg_pool2d(tensor, 2)
+    elif method == "bicubic":
+        small = F.interpolate(tensor, scale_factor=0.5, mode="bicubic", align_corners=False, antialias=True)
+    else:
+        raise ValueError(f"unknown downsampling {method!r}; use 'area' or 'bicubic'")
+    return bicubic_upsample(small, 2).clamp(0.0, 1.0).numpy()
+
+
+def _image_crops(image: np.ndarray, size: int, count: int, rng: np.random.Generator) -> list[np.ndarray]:
+    return [image[top:top + size, left:left + size].transpose(2, 0, 1)
+            for top, left in _crop_corners(image.shape[:2], size, count, rng)]
+
+
+def superres_data(profile: str | ReconstructionProfile = "quick",
+                  datasets: list[Dataset] | tuple[Dataset, ...] = ()) -> dict[str, dict[str, np.ndarray]]:
+    """Superresolution pairs: photo and render crops, per split.
+
+    Parameters
+    ----------
+    profile : str or ReconstructionProfile
+        Supplies ``superres_crop_size``, ``superres_crops_per_image``, ``superres_downsample``, ``seed``.
+    datasets : sequence of Dataset
+        Precision Graphics datasets whose references add render crops (train views to
+        train, validation views to validation, test views to test).
+
+    Returns
+    -------
+    dict
+        Split -> {"input": bicubic-upsampled RGB, "target": RGB}, float32 (N, 3, S, S),
+        linear; ``test`` holds renders only and is absent without ``datasets``.
+
+    Raises
+    ------
+    ValueError
+        A crop does not fit an image.
+    """
+    profile = _resolve(profile)
+    size, count = profile.superres_crop_size, profile.superres_crops_per_image
+    rng = np.random.default_rng([profile.seed, 5])
+    targets: dict[str, list[np.ndarray]] = {split: [] for split in SPLITS}
+    for split, names in (("train", TRAIN_PHOTOS), ("validation", VALIDATION_PHOTOS)):
+        for name in names:
+            targets[split] += _image_crops(photo(name), size, count, rng)
+    for dataset in datasets:
+        for split in SPLITS:
+            for name in dataset.views(split):
+                targets[split] += _image_crops(dataset.load_view(name)["reference"], size, count, rng)
+    out = {}
+    for split, crops_ in targets.items():
+        if crops_:
+            target = np.clip(np.stack(crops_), 0.0, 1.0).astype(np.float32)
+            out[split] = {"input": degrade(target, profile.superres_downsample), "target": target}
+    return out

@@ -1,0 +1,272 @@
+"""The two reconstruction networks of Tang et al.: the denoising autoencoder (§4.1) and
+the Y-channel superresolution CNN (§5.1), plus the BT.601 colour conversion and the
+bicubic upsampling the superresolution net refines.
+
+Denoiser layer arrangement (95,107 trainable parameters with the diffuse map)
+------------------------------------------------------------------------------
+Every convolution is 3×3, stride 1, zero padding 1, with bias; ``relu`` is ReLU.
+
+==========  =====================================================  ==========  ==========
+name        operation                                               scale       parameters
+==========  =====================================================  ==========  ==========
+``inc``     relu(conv 6→32)                                         1           1,760
+``enc1``    e1 = relu(conv 32→32); then 2×2 max pool                1 → 1/2     9,248
+``enc2``    e2 = relu(conv 32→32); then 2×2 max pool                1/2 → 1/4   9,248
+``enc3``    e3 = relu(conv 32→32); then 2×2 max pool                1/4 → 1/8   9,248
+``enc4``    e4 = relu(conv 32→32); then 2×2 max pool                1/8 → 1/16  9,248
+``enc5``    e5 = relu(conv 32→32); then 2×2 max pool                1/16 → 1/32 9,248
+``dec5``    2× nearest upsample; relu(conv 32→32) + e5              1/32 → 1/16 9,248
+``dec4``    2× nearest upsample; relu(conv 32→32) + e4              1/16 → 1/8  9,248
+``dec3``    2× nearest upsample; relu(conv 32→32) + e3              1/8 → 1/4   9,248
+``dec2``    2× nearest upsample; relu(conv 32→32) + e2              1/4 → 1/2   9,248
+``dec1``    2× nearest upsample; relu(conv 32→32) + e1              1/2 → 1     9,248
+``out``     conv 32→3 (linear: the output is in the HDR-encoded      1           867
+            space of :mod:`reconstruction.hdr`)
+==========  =====================================================  ==========  ==========
+
+Total 1,760 + 10 × 9,248 + 867 = 95,107. Each encoder block's output (before pooling)
+is added to the output of the decoder block at the same resolution. With the optional
+auxiliary normal and depth inputs (``auxiliary=("albedo", "normal", "depth")``, 10 input
+channels) only ``inc`` grows, to 10·32·9 + 32 = 2,912, giving 96,259 parameters.
+
+The five poolings need sides divisible by 32: :meth:`Denoiser.forward` pads the bottom
+and right edges by edge replication up to the next multiple of 32 and crops the result
+back, so any input size works and the pooling grid is anchored at the top-left pixel
+(which :mod:`reconstruction.inference` relies on for exact tiling).
+
+Superresolution (37,793 trainable parameters)
+---------------------------------------------
+relu(conv 9×9 1→32) [2,624] → relu(conv 3×3 32→32) [9,248] → relu(conv 5×5 32→32)
+[25,632] → conv 3×3 32→1 [289]; "same" padding by edge replication. The net sees the Y
+channel of the bicubic 2×-upsampled image and predicts a correction added to it
+(residual form: a parameter-free choice, so an untrained net starts at bicubic quality).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+#: Channels of each denoiser input, in stacking order after the noisy RGB.
+AUXILIARY_CHANNELS = {"albedo": 3, "normal": 3, "depth": 1}
+#: Side multiple the denoiser's five 2×2 poolings need.
+POOLING_MULTIPLE = 32
+#: Number of encoder (and decoder) blocks.
+DEPTH = 5
+#: Filters of every hidden layer.
+FILTERS = 32
+
+
+def count_parameters(model: nn.Module) -> int:
+    """Number of trainable parameters of ``model``."""
+    return sum(p.numel() for p in model.parameters() if p.requires_grad)
+
+
+def _check_batch(x: torch.Tensor, channels: int, name: str) -> None:
+    if not isinstance(x, torch.Tensor):
+        raise TypeError(f"{name} input must be a torch.Tensor, got {type(x).__name__}")
+    if x.ndim != 4 or x.shape[1] != channels:
+        raise ValueError(f"{name} input must have shape (N, {channels}, H, W), got {tuple(x.shape)}")
+    if x.shape[2] == 0 or x.shape[3] == 0:
+        raise ValueError(f"{name} input must be non-empty, got {tuple(x.shape)}")
+
+
+class Denoiser(nn.Module):
+    """Denoising autoencoder of §4.1 (see the module docstring for the layer table).
+
+    Parameters
+    ----------
+    auxiliary : tuple of str
+        Auxiliary buffers stacked after the noisy RGB, in this order; a subset of
+        ``("albedo", "normal", "depth")`` with ``"albedo"`` (the paper's diffuse map).
+        ``("albedo",)`` gives the paper's 6-channel, 95,107-parameter network;
+        ``("albedo", "normal", "depth")`` the 10-channel, 96,259-parameter variant.
+    """
+
+    def __init__(self, auxiliary: tuple[str, ...] = ("albedo",)) -> None:
+        super().__init__()
+        auxiliary = tuple(auxiliary)
+        order = tuple(name for name in AUXILIARY_CHANNELS if name in auxiliary)
+        if "albedo" not in auxiliary or set(auxiliary) - set(AUXILIARY_CHANNELS) or order != auxiliary:
+            raise ValueError(
+                f"auxiliary must contain 'albedo' and be an ordered subset of {tuple(AUXILIARY_CHANNELS)}, got {auxiliary}"
+            )
+        self.auxiliary = auxiliary
+        self.in_channels = 3 + sum(AUXILIARY_CHANNELS[name] for name in auxiliary)
+        self.inc = nn.Conv2d(self.in_channels, FILTERS, 3, padding=1)
+        self.encoders = nn.ModuleList(nn.Conv2d(FILTERS, FILTERS, 3, padding=1) for _ in range(DEPTH))
+        self.decoders = nn.ModuleList(nn.Conv2d(FILTERS, FILTERS, 3, padding=1) for _ in range(DEPTH))
+        self.out = nn.Conv2d(FILTERS, 3, 3, padding=1)
+
+    @property
+    def config(self) -> dict:
+        """Constructor arguments and identity, for checkpoints: ``Denoiser(**config["kwargs"])``."""
+        return {"architecture": "Denoiser", "kwargs": {"auxiliary": list(self.auxiliary)}}
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """Denoise a batch.
+
+        Parameters
+        ----------
+        x : torch.Tensor
+            Shape (N, ``in_channels``, H, W), any H, W ≥ 1: HDR-encoded noisy RGB then the
+            auxiliary buffers (see :func:`reconstruction.hdr.denoiser_input`).
+
+        Returns
+        -------
+        torch.Tensor
+            Shape (N, 3, H, W): the denoised RGB in the HDR-encoded space.
+        """
+        _check_batch(x, self.in_channels, "Denoiser")
+        height, width = x.shape[-2:]
+        pad_h, pad_w = (-height) % POOLING_MULTIPLE, (-width) % POOLING_MULTIPLE
+        if pad_h or pad_w:
+            x = F.pad(x, (0, pad_w, 0, pad_h), mode="replicate")
+        x = F.relu(self.inc(x))
+        skips = []
+        for conv in self.encoders:
+            x = F.relu(conv(x))
+            skips.append(x)
+            x = F.max_pool2d(x, 2)
+        for conv, skip in zip(reversed(self.decoders), reversed(skips)):
+            x = F.relu(conv(F.interpolate(x, scale_factor=2, mode="nearest"))) + skip
+        return self.out(x)[..., :height, :width]
+
+
+class Superresolution(nn.Module):
+    """Y-channel superresolution CNN of §5.1 (9-3-5-3 kernels, 32 filters, 37,793 parameters).
+
+    The input is the Y channel of the bicubic 2×-upsampled image; the output is that Y
+    plus the predicted correction (same size as the input).
+    """
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.layers = nn.ModuleList(
+            nn.Conv2d(c_in, c_out, k, padding=k // 2, padding_mode="replicate")
+            for c_in, c_out, k in ((1, FILTERS, 9), (FILTERS, FILTERS, 3), (FILTERS, FILTERS, 5), (FILTERS, 1, 3))
+        )
+
+    @property
+    def config(self) -> dict:
+        """Constructor arguments and identity, for checkpoints."""
+        return {"architecture": "Superresolution", "kwargs": {}}
+
+    def forward(self, y: torch.Tensor) -> torch.Tensor:
+        """Refine a bicubic-upsampled luma batch.
+
+        Parameters
+        ----------
+        y : torch.Tensor
+            Shape (N, 1, H, W), BT.601 luma in [0, 1] of the bicubic-upsampled image.
+
+        Returns
+        -------
+        torch.Tensor
+            Shape (N, 1, H, W): refined luma (not clamped; :func:`superresolve` clamps).
+        """
+        _check_batch(y, 1, "Superresolution")
+        x = y
+        for layer in self.layers[:-1]:
+            x = F.relu(layer(x))
+        return y + self.layers[-1](x)
+
+
+# Full-range BT.601 (JFIF) for values in [0, 1]: Y in [0, 1], Cb and Cr centred on 0.5.
+_RGB_TO_YCBCR = np.array(
+    [[0.299, 0.587, 0.114], [-0.168736, -0.331264, 0.5], [0.5, -0.418688, -0.081312]], dtype=np.float64
+)
+_YCBCR_TO_RGB = np.linalg.inv(_RGB_TO_YCBCR)
+_CHROMA_OFFSET = np.array([0.0, 0.5, 0.5])
+
+
+def _apply_colour_matrix(image, matrix: np.ndarray, before: np.ndarray, after: np.ndarray, channel_axis: int):
+    if image.shape[channel_axis] != 3:
+        raise ValueError(f"expected 3 channels on axis {channel_axis}, got shape {tuple(image.shape)}")
+    if isinstance(image, torch.Tensor):
+        moved = torch.movedim(image, channel_axis, -1)
+        m = torch.as_tensor(matrix, dtype=image.dtype, device=image.device)
+        b = torch.as_tensor(before, dtype=image.dtype, device=image.device)
+        a = torch.as_tensor(after, dtype=image.dtype, device=image.device)
+        return torch.movedim((moved - b) @ m.T + a, -1, channel_axis)
+    image = np.asarray(image)
+    dtype = image.dtype if np.issubdtype(image.dtype, np.floating) else np.float64
+    moved = np.moveaxis(image.astype(np.float64, copy=False), channel_axis, -1)
+    return np.moveaxis((moved - before) @ matrix.T + after, -1, channel_axis).astype(dtype)
+
+
+def ycbcr_from_rgb(rgb, channel_axis: int = -1):
+    """Full-range BT.601 YCbCr of RGB in [0, 1] (JFIF convention, no 16–235 studio range).
+
+    Parameters
+    ----------
+    rgb : numpy.ndarray or torch.Tensor
+        RGB values (nominally [0, 1]) with 3 channels on ``channel_axis``.
+    channel_axis : int
+        Channel axis: -1 for (H, W, 3) arrays, -3 for (N, 3, H, W) tensors.
+
+    Returns
+    -------
+    Same type and shape: Y = 0.299 R + 0.587 G + 0.114 B in [0, 1], Cb and Cr in [0, 1]
+    with neutral grey at 0.5.
+    """
+    return _apply_colour_matrix(rgb, _RGB_TO_YCBCR, np.zeros(3), _CHROMA_OFFSET, channel_axis)
+
+
+def rgb_from_ycbcr(ycbcr, channel_axis: int = -1):
+    """Inverse of :func:`ycbcr_from_rgb` (exact matrix inverse; no clamping)."""
+    return _apply_colour_matrix(ycbcr, _YCBCR_TO_RGB, _CHROMA_OFFSET, np.zeros(3), channel_axis)
+
+
+def bicubic_upsample(x: torch.Tensor, factor: int = 2) -> torch.Tensor:
+    """Bicubic upsampling used everywhere in the project (SR input and bicubic baseline).
+
+    ``torch.nn.functional.interpolate(mode="bicubic", align_corners=False)``: Keys cubic
+    with a = -0.75, pixel-centre aligned, edge-clamped; not clamped to [0, 1].
+
+    Parameters
+    ----------
+    x : torch.Tensor
+        Shape (N, C, H, W).
+    factor : int
+        Integer scale factor.
+
+    Returns
+    -------
+    torch.Tensor
+        Shape (N, C, factor·H, factor·W).
+    """
+    return F.interpolate(x, scale_factor=factor, mode="bicubic", align_corners=False)
+
+
+def superresolve(model: Superresolution, low_res_rgb: np.ndarray) -> np.ndarray:
+    """2× superresolution of an RGB image in [0, 1], end to end (§5.1).
+
+    Bicubic 2× upsampling (:func:`bicubic_upsample`), clamped to [0, 1]; BT.601 YCbCr;
+    the network refines Y; Cb and Cr stay bicubic; back to RGB, clamped to [0, 1].
+
+    Parameters
+    ----------
+    model : Superresolution
+        The network (evaluated without gradients, in its current train/eval mode).
+    low_res_rgb : numpy.ndarray
+        Shape (H, W, 3), float values in [0, 1] (the caller chooses linear or sRGB).
+
+    Returns
+    -------
+    numpy.ndarray
+        Shape (2H, 2W, 3), float32 in [0, 1].
+    """
+    low_res_rgb = np.asarray(low_res_rgb)
+    if low_res_rgb.ndim != 3 or low_res_rgb.shape[2] != 3 or 0 in low_res_rgb.shape:
+        raise ValueError(f"low_res_rgb must have shape (H, W, 3), got {low_res_rgb.shape}")
+    if not np.all(np.isfinite(low_res_rgb)):
+        raise ValueError("low_res_rgb contains NaN or infinite values")
+    x = torch.from_numpy(np.ascontiguousarray(low_res_rgb, dtype=np.float32)).permute(2, 0, 1)[None]
+    with torch.inference_mode():
+        ycbcr = ycbcr_from_rgb(bicubic_upsample(x).clamp(0.0, 1.0), channel_axis=-3)
+        y = model(ycbcr[:, :1])
+        rgb = rgb_from_ycbcr(torch.cat([y, ycbcr[:, 1:]], dim=1), channel_axis=-3).clamp(0.0, 1.0)
+    return rgb[0].permute(1, 2, 0).numpy().copy()

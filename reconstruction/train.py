@@ -1,0 +1,538 @@
+"""Training of the reconstruction networks on CPU (paper §4.3, §5.2, §6.1).
+
+Adam with mini-batches (``batch_size``, 32 in the paper) for ``epochs`` epochs; after
+every epoch the train and validation loss and PSNR are recorded, and the weights with
+the lowest validation loss are kept (the paper's model choice). Everything needed to
+continue lives in ``checkpoint.pt`` (model, optimizer, epoch, RNG states, history, best
+weights), written atomically after each epoch: an interrupted training reruns from the
+epoch after the last finished one and gives the same result as an uninterrupted one.
+``best.pt`` holds the kept weights. ``history.json``, ``history.csv`` and
+``training.png`` (the paper's Figure 4: loss and PSNR per epoch) are rewritten each epoch.
+
+Checkpoints record the architecture name and constructor arguments, the parameter count
+and the hash of the training data; :func:`load_checkpoint` refuses a checkpoint of
+another architecture, a foreign or corrupt file, with a ``ValueError``.
+
+Entry points: :func:`train_denoiser` (one scene: the Precision Graphics model; several:
+the mixed model), :func:`train_superres`, :func:`evaluate`. The training folder is
+``cache_root()/models/<kind>-<key>`` where the key hashes the architecture, the data
+hash and the optimisation settings (not the epoch count, so raising ``epochs`` resumes).
+"""
+
+from __future__ import annotations
+
+import copy
+import csv
+import dataclasses
+import io
+import json
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+from tqdm import tqdm
+
+from kdtrace.cache import atomic_write, atomic_write_bytes, cache_root, content_key
+from kdtrace.config import DEFAULT_CONFIG, ReconstructionProfile
+from kdtrace.provenance import stamp
+
+#: Identifies our checkpoint files; bump the version when their layout changes.
+CHECKPOINT_FORMAT = "kdtrace-reconstruction-checkpoint"
+CHECKPOINT_VERSION = 1
+#: Examples per forward pass when evaluating (memory bound only; results do not depend on it).
+EVAL_BATCH = 64
+
+Transform = Callable[[torch.Tensor], torch.Tensor]
+
+
+@dataclass
+class TrainResult:
+    """Outcome of a training run.
+
+    Attributes
+    ----------
+    model : nn.Module
+        The model, holding the kept (lowest validation loss) weights, in eval mode.
+    history : list of dict
+        Per epoch: ``epoch`` (1-based), ``train_loss``, ``validation_loss``,
+        ``train_psnr``, ``validation_psnr`` (dB) and ``seconds``.
+    best_epoch : int
+        Epoch of the kept weights.
+    directory : Path
+        Folder of the checkpoints, history and plot.
+    data_hash : str
+        Hash of the training data recorded in the checkpoints.
+    """
+
+    model: nn.Module
+    history: list[dict[str, float]]
+    best_epoch: int
+    directory: Path
+    data_hash: str
+
+
+def architecture(model: nn.Module) -> dict[str, Any]:
+    """Name and constructor arguments of ``model`` (its ``config`` property when it has one)."""
+    config = getattr(model, "config", None)
+    return dict(config) if isinstance(config, dict) else {"architecture": type(model).__name__, "kwargs": {}}
+
+
+def parameter_count(model: nn.Module) -> int:
+    """Trainable parameters of ``model``."""
+    return sum(p.numel() for p in model.parameters() if p.requires_grad)
+
+
+# ------------------------------------------------------------------ checkpoints
+def save_checkpoint(path: Path, model: nn.Module, data_hash: str, **state: Any) -> None:
+    """Atomically write ``model``'s weights with its identity and ``state`` to ``path``."""
+    payload = {"format": CHECKPOINT_FORMAT, "version": CHECKPOINT_VERSION, **architecture(model),
+               "parameters": parameter_count(model), "data_hash": data_hash, "model": model.state_dict(), **state}
+    buffer = io.BytesIO()
+    torch.save(payload, buffer)
+    atomic_write_bytes(path, buffer.getvalue())
+
+
+def read_checkpoint(path: str | Path) -> dict[str, Any]:
+    """The contents of a checkpoint written by :func:`save_checkpoint` (tensors on CPU).
+
+    Raises
+    ------
+    ValueError
+        Missing, unreadable, foreign or of another layout version.
+    """
+    try:
+        payload = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as error:  # torch.load raises many types (OSError, pickle and zip errors) on bad files
+        raise ValueError(f"{path} is not a readable checkpoint: {error}") from error
+    if not isinstance(payload, dict) or payload.get("format") != CHECKPOINT_FORMAT:
+        raise ValueError(f"{path} is not a kdtrace reconstruction checkpoint")
+    if payload.get("version") != CHECKPOINT_VERSION:
+        raise ValueError(f"{path} has checkpoint version {payload.get('version')}, expected {CHECKPOINT_VERSION}")
+    return payload
+
+
+def load_checkpoint(path: str | Path, model: nn.Module, weights: str = "model") -> dict[str, Any]:
+    """Load a checkpoint's weights into ``model`` after checking it was made for it.
+
+    Parameters
+    ----------
+    path : str or Path
+    model : nn.Module
+        Receives the weights (in place).
+    weights : {"model", "best"}
+        Which weights of ``checkpoint.pt`` to load (``best.pt`` has only ``"model"``).
+
+    Returns
+    -------
+    dict
+        The whole checkpoint (see :func:`save_checkpoint`).
+
+    Raises
+    ------
+    ValueError
+        Not a checkpoint, another architecture or constructor arguments, another
+        parameter count, or weights that do not fit.
+    """
+    payload = read_checkpoint(path)
+    expected = architecture(model)
+    found = {"architecture": payload.get("architecture"), "kwargs": payload.get("kwargs")}
+    if found != expected:
+        raise ValueError(f"{path} holds a {found['architecture']} {found['kwargs']} checkpoint; "
+                         f"the model is a {expected['architecture']} {expected['kwargs']}")
+    if payload.get("parameters") != parameter_count(model):
+        raise ValueError(f"{path} has {payload.get('parameters')} parameters; the model has {parameter_count(model)}")
+    try:
+        model.load_state_dict(payload[weights])
+    except (KeyError, RuntimeError) as error:
+        raise ValueError(f"{path}: weights {weights!r} do not fit the model: {error}") from error
+    return payload
+
+
+# ------------------------------------------------------------------ history
+def _write_history(directory: Path, history: list[dict[str, float]]) -> None:
+    """history.json, history.csv and training.png (Figure 4), each atomically."""
+    atomic_write_bytes(directory / "history.json", json.dumps(history, indent=1).encode())
+    text = io.StringIO()
+    writer = csv.DictWriter(text, fieldnames=list(history[0]))
+    writer.writeheader()
+    writer.writerows(history)
+    atomic_write_bytes(directory / "history.csv", text.getvalue().encode())
+    plot_history(history, directory / "training.png")
+
+
+def plot_history(history: list[dict[str, float]], path: Path) -> Path:
+    """Plot loss and PSNR of the train and validation sets per epoch (the paper's Figure 4) to a PNG."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    epochs = [row["epoch"] for row in history]
+    figure, (loss_axes, psnr_axes) = plt.subplots(1, 2, figsize=(9, 3.5))
+    for axes, quantity, label in ((loss_axes, "loss", "loss"), (psnr_axes, "psnr", "PSNR (dB)")):
+        for split, style in (("train", "-o"), ("validation", "--s")):
+            axes.plot(epochs, [row[f"{split}_{quantity}"] for row in history], style, markersize=3, label=split)
+        axes.set_xlabel("epoch")
+        axes.set_ylabel(label)
+        axes.grid(alpha=0.3)
+        axes.legend()
+    figure.tight_layout()
+    atomic_write(path, lambda temporary: figure.savefig(temporary, dpi=100))
+    plt.close(figure)
+    return path
+
+
+# ------------------------------------------------------------------ training loop
+def _default_psnr() -> Callable[[np.ndarray, np.ndarray], float]:
+    from reconstruction.metrics import psnr
+
+    return psnr
+
+
+def _identity(x: torch.Tensor) -> torch.Tensor:
+    return x
+
+
+def _batches(count: int, size: int, order: np.ndarray | None = None):
+    order = np.arange(count) if order is None else order
+    for start in range(0, count, size):
+        yield torch.from_numpy(order[start:start + size])
+
+
+def _mean_psnr(prediction: torch.Tensor, target: torch.Tensor, to_linear: Transform, psnr) -> list[float]:
+    """PSNR of every example (linear, clipped to [0, 1] by ``psnr``), as a list."""
+    prediction = to_linear(prediction.detach()).permute(0, 2, 3, 1).numpy()
+    target = to_linear(target).permute(0, 2, 3, 1).numpy()
+    return [min(psnr(p, t), 100.0) for p, t in zip(prediction, target)]
+
+
+def evaluate(model: nn.Module, dataset_split: tuple[torch.Tensor, torch.Tensor], loss_fn: nn.Module | None = None,
+             to_linear: Transform = _identity, psnr: Callable | None = None) -> dict[str, float]:
+    """Loss and image metrics of ``model`` on one split.
+
+    Parameters
+    ----------
+    model : nn.Module
+    dataset_split : (inputs, targets)
+        Tensors (N, C_in, H, W) and (N, C_out, H, W) in the network's space.
+    loss_fn : nn.Module, optional
+        Adds ``loss`` (mean over examples) when given.
+    to_linear : callable
+        Network space -> linear values (e.g. :func:`reconstruction.hdr.decode`).
+    psnr : callable, optional
+        ``psnr(test, reference)`` on (H, W, C) arrays; default :func:`reconstruction.metrics.psnr`.
+
+    Returns
+    -------
+    dict
+        ``psnr`` (mean over examples, dB, capped at 100), ``rmse`` (root of the mean
+        squared error of the linear images clipped to [0, 1]), ``loss`` if ``loss_fn``,
+        and ``count``.
+    """
+    psnr = _default_psnr() if psnr is None else psnr
+    inputs, targets = dataset_split
+    if len(inputs) == 0 or len(inputs) != len(targets):
+        raise ValueError(f"need matching, non-empty inputs and targets, got {len(inputs)} and {len(targets)}")
+    was_training = model.training
+    model.eval()
+    loss_sum, psnrs, squared = 0.0, [], 0.0
+    with torch.no_grad():
+        for index in _batches(len(inputs), EVAL_BATCH):
+            prediction = model(inputs[index])
+            if loss_fn is not None:
+                loss_sum += float(loss_fn(prediction, targets[index])) * len(index)
+            psnrs += _mean_psnr(prediction, targets[index], to_linear, psnr)
+            difference = to_linear(prediction).clamp(0, 1) - to_linear(targets[index]).clamp(0, 1)
+            squared += float((difference ** 2).mean(dim=(1, 2, 3)).sum())
+    model.train(was_training)
+    metrics = {"psnr": float(np.mean(psnrs)), "rmse": float(np.sqrt(squared / len(inputs))), "count": len(inputs)}
+    if loss_fn is not None:
+        metrics["loss"] = loss_sum / len(inputs)
+    return metrics
+
+
+def fit(model: nn.Module, loss_fn: nn.Module, data: dict[str, tuple[torch.Tensor, torch.Tensor]], directory: Path,
+        data_hash: str, epochs: int, batch_size: int, learning_rate: float, seed: int,
+        to_linear: Transform = _identity, psnr: Callable | None = None, progress: bool | None = None) -> TrainResult:
+    """Train ``model`` with Adam, resuming from ``directory/checkpoint.pt`` when it matches.
+
+    Parameters
+    ----------
+    model : nn.Module
+        Freshly initialised (its weights are replaced on resume).
+    loss_fn : nn.Module
+        ``loss_fn(prediction, target)`` -> scalar, in the network's space.
+    data : dict
+        ``"train"`` and ``"validation"`` -> (inputs, targets) tensors, (N, C, H, W).
+    directory : Path
+        Where checkpoints, history and plot go.
+    data_hash : str
+        Identity of ``data``; a checkpoint with another hash is not resumed (ValueError).
+    epochs, batch_size : int
+    learning_rate : float
+    seed : int
+        Seeds the shuffling generator (NumPy) and torch's RNG.
+    to_linear : callable
+        Network space -> linear values, for PSNR.
+    psnr : callable, optional
+        ``psnr(test, reference)`` on (H, W, C) arrays; default :func:`reconstruction.metrics.psnr`.
+    progress : bool, optional
+        Show a tqdm bar over epochs (None: only on a terminal).
+
+    Returns
+    -------
+    TrainResult
+    """
+    psnr = _default_psnr() if psnr is None else psnr
+    for split in ("train", "validation"):
+        if split not in data or len(data[split][0]) == 0:
+            raise ValueError(f"the {split} split is empty")
+    directory = Path(directory)
+    checkpoint_path = directory / "checkpoint.pt"
+    optimizer = torch.optim.Adam(model.parameters(), lr=learning_rate)
+    rng = np.random.default_rng(seed)
+    torch.manual_seed(seed)
+    history: list[dict[str, float]] = []
+    best = {"loss": float("inf"), "epoch": 0, "state": copy.deepcopy(model.state_dict())}
+    if checkpoint_path.is_file():
+        state = load_checkpoint(checkpoint_path, model)
+        if state["data_hash"] != data_hash:
+            raise ValueError(f"{checkpoint_path} was trained on data {state['data_hash'][:12]}, not {data_hash[:12]}; "
+                             "use another directory")
+        optimizer.load_state_dict(state["optimizer"])
+        rng.bit_generator.state = json.loads(state["numpy_rng"])
+        torch.set_rng_state(state["torch_rng"])
+        history = json.loads(state["history"])
+        best = {"loss": state["best_loss"], "epoch": state["best_epoch"], "state": state["best"]}
+    inputs, targets = data["train"]
+    bar = tqdm(total=epochs, initial=len(history), unit="epoch", desc=f"train {architecture(model)['architecture']}",
+               disable=None if progress is None else not progress, leave=False)
+    for epoch in range(len(history) + 1, epochs + 1):
+        started = time.perf_counter()
+        model.train()
+        loss_sum, psnrs = 0.0, []
+        for index in _batches(len(inputs), batch_size, rng.permutation(len(inputs))):
+            prediction = model(inputs[index])
+            loss = loss_fn(prediction, targets[index])
+            optimizer.zero_grad()
+            loss.backward()
+            optimizer.step()
+            loss_sum += float(loss.detach()) * len(index)
+            psnrs += _mean_psnr(prediction, targets[index], to_linear, psnr)
+        validation = evaluate(model, data["validation"], loss_fn, to_linear, psnr)
+        history.append({"epoch": epoch, "train_loss": loss_sum / len(inputs), "validation_loss": validation["loss"],
+                         "train_psnr": float(np.mean(psnrs)), "validation_psnr": validation["psnr"],
+                         "seconds": time.perf_counter() - started})
+        if validation["loss"] < best["loss"]:
+            best = {"loss": validation["loss"], "epoch": epoch, "state": copy.deepcopy(model.state_dict())}
+            best_model = copy.deepcopy(model)
+            best_model.load_state_dict(best["state"])
+            save_checkpoint(directory / "best.pt", best_model, data_hash, epoch=epoch, validation_loss=best["loss"])
+        save_checkpoint(checkpoint_path, model, data_hash, optimizer=optimizer.state_dict(), epoch=epoch,
+                        numpy_rng=json.dumps(rng.bit_generator.state), torch_rng=torch.get_rng_state(),
+                        history=json.dumps(history), best=best["state"], best_loss=best["loss"],
+                        best_epoch=best["epoch"])
+        _write_history(directory, history)
+        bar.update(1)
+        bar.set_postfix(train=f"{history[-1]['train_loss']:.4g}", val=f"{validation['loss']:.4g}")
+    bar.close()
+    model.load_state_dict(best["state"])
+    model.eval()
+    return TrainResult(model, history, best["epoch"], directory, data_hash)
+
+
+# ------------------------------------------------------------------ entry points
+def _resolve(profile: str | ReconstructionProfile) -> ReconstructionProfile:
+    return DEFAULT_CONFIG.reconstruction.profile(profile) if isinstance(profile, str) else profile
+
+
+def _training_dir(kind: str, model: nn.Module, data_hash: str, profile: ReconstructionProfile) -> Path:
+    key = content_key(kind, architecture(model), parameter_count(model), data_hash, profile.batch_size,
+                      profile.learning_rate, profile.seed)
+    return cache_root() / "models" / f"{kind}-{key[:24]}"
+
+
+def denoiser_tensors(dataset_crops: dict[str, np.ndarray], auxiliary: tuple[str, ...] = ("albedo",),
+                     encode: Transform | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """Network inputs and targets from crops of :func:`reconstruction.data.crops`.
+
+    Parameters
+    ----------
+    dataset_crops : dict
+        ``noisy``, ``reference`` and the ``auxiliary`` buffers, float32 (N, C, H, W).
+    auxiliary : tuple of str
+        Buffers stacked after the noisy RGB (the order :class:`reconstruction.models.Denoiser` expects).
+    encode : callable, optional
+        HDR transform of radiance and depth; default :func:`reconstruction.hdr.encode`.
+
+    Returns
+    -------
+    inputs : torch.Tensor, (N, 3 + aux channels, H, W)
+        encode(noisy), then the auxiliary buffers (depth encoded, the others as rendered).
+    targets : torch.Tensor, (N, 3, H, W)
+        encode(reference).
+    """
+    if encode is None:
+        from reconstruction.hdr import encode
+    planes = [encode(torch.from_numpy(dataset_crops["noisy"]))]
+    for name in auxiliary:
+        plane = torch.from_numpy(dataset_crops[name])
+        planes.append(encode(plane) if name == "depth" else plane)
+    return torch.cat(planes, dim=1), encode(torch.from_numpy(dataset_crops["reference"]))
+
+
+def denoiser_data(scene_names: list[str] | tuple[str, ...], profile: str | ReconstructionProfile = "quick",
+                  auxiliary: tuple[str, ...] = ("albedo",), encode: Transform | None = None,
+                  progress: bool | None = None) -> tuple[dict[str, tuple[torch.Tensor, torch.Tensor]], str]:
+    """Train / validation / test tensors over the datasets of ``scene_names`` and their hash.
+
+    Returns
+    -------
+    data : dict
+        Split -> (inputs, targets), see :func:`denoiser_tensors`; crops of all scenes concatenated.
+    data_hash : str
+        Content key of the dataset keys and crop settings.
+    """
+    from reconstruction.data import SPLITS, crops, generate_dataset
+
+    profile = _resolve(profile)
+    if not scene_names:
+        raise ValueError("no scenes given")
+    datasets = [generate_dataset(name, profile, progress) for name in scene_names]
+    data = {}
+    for split in SPLITS:
+        parts = [denoiser_tensors(crops(dataset, split, profile.crop_size, profile.crops_per_view, profile.seed),
+                                  auxiliary, encode) for dataset in datasets]
+        data[split] = (torch.cat([p[0] for p in parts]), torch.cat([p[1] for p in parts]))
+    data_hash = content_key("denoiser-data", [d.key for d in datasets], list(auxiliary), profile.crop_size,
+                            profile.crops_per_view, profile.seed)
+    return data, data_hash
+
+
+def train_denoiser(scene_names: list[str] | tuple[str, ...], profile: str | ReconstructionProfile = "quick",
+                   model: nn.Module | None = None, loss_fn: nn.Module | None = None,
+                   auxiliary: tuple[str, ...] = ("albedo",), directory: Path | None = None,
+                   psnr: Callable | None = None, progress: bool | None = None) -> TrainResult:
+    """Train the denoiser on the Precision Graphics datasets of ``scene_names``.
+
+    One scene gives the scene's specialised (Precision Graphics) model, several the
+    mixed model. Datasets are generated or reused first.
+
+    Parameters
+    ----------
+    scene_names : sequence of str
+    profile : str or ReconstructionProfile
+        Dataset, crop and training settings.
+    model : nn.Module, optional
+        Default :class:`reconstruction.models.Denoiser` with ``auxiliary``, initialised
+        after ``torch.manual_seed(profile.seed)``.
+    loss_fn : nn.Module, optional
+        Default :class:`reconstruction.loss.EdgeAwareLoss` (sigma 1.4).
+    auxiliary : tuple of str
+        Buffers after the noisy RGB in the input.
+    directory : Path, optional
+        Default ``cache_root()/models/denoiser-<key>``.
+    psnr : callable, optional
+        Default :func:`reconstruction.metrics.psnr`.
+    progress : bool, optional
+
+    Returns
+    -------
+    TrainResult
+        Also writes ``result.json`` (test metrics of the kept weights, settings, provenance).
+    """
+    from reconstruction.hdr import decode
+
+    profile = _resolve(profile)
+    data, data_hash = denoiser_data(scene_names, profile, auxiliary, progress=progress)
+    if model is None:
+        from reconstruction.models import Denoiser
+
+        torch.manual_seed(profile.seed)
+        model = Denoiser(auxiliary)
+    if loss_fn is None:
+        from reconstruction.loss import DENOISER_SIGMA, EdgeAwareLoss
+
+        loss_fn = EdgeAwareLoss(DENOISER_SIGMA)
+    directory = _training_dir("denoiser", model, data_hash, profile) if directory is None else Path(directory)
+    result = fit(model, loss_fn, data, directory, data_hash, profile.epochs, profile.batch_size,
+                 profile.learning_rate, profile.seed, decode, psnr, progress)
+    _write_result(result, evaluate(result.model, data["test"], loss_fn, decode, psnr), list(scene_names), profile)
+    return result
+
+
+def superres_tensors(pairs: dict[str, np.ndarray]) -> tuple[torch.Tensor, torch.Tensor]:
+    """BT.601 luma of the input and target RGB crops of :func:`reconstruction.data.superres_data`.
+
+    Returns
+    -------
+    inputs, targets : torch.Tensor, (N, 1, H, W)
+        Y of the bicubic-upsampled input and of the target, in [0, 1].
+    """
+    from reconstruction.models import ycbcr_from_rgb
+
+    return tuple(ycbcr_from_rgb(torch.from_numpy(pairs[name]), channel_axis=-3)[:, :1].contiguous()
+                 for name in ("input", "target"))
+
+
+def train_superres(profile: str | ReconstructionProfile = "quick", scene_names: list[str] | tuple[str, ...] = (),
+                   model: nn.Module | None = None, loss_fn: nn.Module | None = None, directory: Path | None = None,
+                   psnr: Callable | None = None, progress: bool | None = None) -> TrainResult:
+    """Train the Y-channel superresolution network on photo crops plus renders of ``scene_names``.
+
+    Parameters
+    ----------
+    profile : str or ReconstructionProfile
+    scene_names : sequence of str
+        Scenes whose datasets add render crops (their test views form the test split).
+    model : nn.Module, optional
+        Default :class:`reconstruction.models.Superresolution` (seeded initialisation).
+    loss_fn : nn.Module, optional
+        Default :class:`reconstruction.loss.EdgeAwareLoss` with sigma 1.
+    directory, psnr, progress
+        As for :func:`train_denoiser`.
+
+    Returns
+    -------
+    TrainResult
+        ``result.json`` holds the test metrics (renders) when scenes are given, and
+        those of the bicubic input for comparison.
+    """
+    from reconstruction.data import generate_dataset, superres_data
+
+    profile = _resolve(profile)
+    datasets = [generate_dataset(name, profile, progress) for name in scene_names]
+    pairs = superres_data(profile, datasets)
+    data = {split: superres_tensors(value) for split, value in pairs.items()}
+    data_hash = content_key("superres-data", [d.key for d in datasets], profile.superres_crop_size,
+                            profile.superres_crops_per_image, profile.superres_downsample, profile.seed)
+    if model is None:
+        from reconstruction.models import Superresolution
+
+        torch.manual_seed(profile.seed)
+        model = Superresolution()
+    if loss_fn is None:
+        from reconstruction.loss import SUPERRESOLUTION_SIGMA, EdgeAwareLoss
+
+        loss_fn = EdgeAwareLoss(SUPERRESOLUTION_SIGMA)
+    directory = _training_dir("superres", model, data_hash, profile) if directory is None else Path(directory)
+    result = fit(model, loss_fn, data, directory, data_hash, profile.epochs, profile.batch_size,
+                 profile.learning_rate, profile.seed, _identity, psnr, progress)
+    if "test" in data:
+        metrics = evaluate(result.model, data["test"], loss_fn, _identity, psnr)
+        metrics["bicubic"] = evaluate(nn.Identity(), data["test"], loss_fn, _identity, psnr)
+        _write_result(result, metrics, list(scene_names), profile)
+    return result
+
+
+def _write_result(result: TrainResult, test: dict[str, Any], scenes: list[str], profile: ReconstructionProfile) -> None:
+    """``result.json``: test metrics of the kept weights, best epoch, data hash, settings, provenance."""
+    record = {"scenes": scenes, "test": test, "best_epoch": result.best_epoch, "data_hash": result.data_hash,
+              **architecture(result.model), "parameters": parameter_count(result.model),
+              "provenance": stamp(dataclasses.asdict(profile))}
+    atomic_write_bytes(result.directory / "result.json", json.dumps(record, indent=1).encode())

@@ -1,0 +1,96 @@
+"""Metrics and baselines of the reconstruction stage (issue 4, §4)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from reconstruction import baselines, metrics
+
+
+def _smooth(height: int, width: int) -> np.ndarray:
+    """A smooth colour image in [0.1, 0.9]: gradients and a low-frequency wave."""
+    y, x = np.mgrid[0:height, 0:width] / max(height, width)
+    return np.stack(
+        [0.1 + 0.8 * x, 0.1 + 0.8 * y, 0.5 + 0.4 * np.sin(2 * np.pi * (x + y))], axis=2
+    ).astype(np.float32)
+
+
+def test_psnr_and_rmse_follow_the_paper_convention():
+    reference = np.full((8, 8, 3), 0.5)
+    test = reference + 0.1
+    assert metrics.rmse(test, reference) == pytest.approx(0.1)
+    assert metrics.psnr(test, reference) == pytest.approx(20.0)
+    assert metrics.psnr(reference, reference) == math.inf
+    # values are clipped to [0, 1] first (data range 1)
+    assert metrics.rmse(np.full((4, 4), 3.0), np.ones((4, 4))) == 0.0
+    assert metrics.psnr(np.full((4, 4, 1), -1.0), np.zeros((4, 4, 1))) == math.inf
+
+
+def test_ssim_relmse_and_flip():
+    reference = _smooth(32, 32)
+    assert metrics.ssim(reference, reference) == pytest.approx(1.0)
+    noisy = np.clip(reference + np.random.default_rng(0).normal(0, 0.1, reference.shape), 0, 1)
+    assert 0 < metrics.ssim(noisy, reference) < 0.9
+    hdr_reference = np.full((4, 4, 3), 10.0)
+    assert metrics.relmse(hdr_reference * 1.1, hdr_reference) == pytest.approx(1.0 / 100.01)
+    assert metrics.flip(reference, reference) == pytest.approx(0.0, abs=1e-6)
+    assert 0 < metrics.flip(noisy, reference) < 1
+    result = metrics.all_metrics(noisy, reference)
+    assert set(result) == {"psnr", "rmse", "ssim", "relmse", "flip"}
+
+
+def test_metrics_reject_bad_input():
+    good = np.zeros((8, 8, 3))
+    with pytest.raises(ValueError, match="differ in shape"):
+        metrics.psnr(good, np.zeros((8, 9, 3)))
+    with pytest.raises(ValueError, match=r"\(H, W, 3\)"):
+        metrics.psnr(np.zeros((8, 8, 2)), np.zeros((8, 8, 2)))
+    with pytest.raises(ValueError, match=r"\(H, W, 3\)"):
+        metrics.flip(np.zeros((8, 8)), np.zeros((8, 8)))
+    bad = good.copy()
+    bad[0, 0, 0] = np.nan
+    for metric in (metrics.psnr, metrics.rmse, metrics.ssim, metrics.relmse, metrics.flip):
+        with pytest.raises(ValueError, match="1 NaN/inf"):
+            metric(bad, good)
+    with pytest.raises(ValueError, match="7×7"):
+        metrics.ssim(np.zeros((4, 4)), np.zeros((4, 4)))
+
+
+def test_oidn_removes_most_of_the_noise():
+    clean = _smooth(64, 64)
+    noisy = np.clip(clean + np.random.default_rng(1).normal(0, 0.1, clean.shape), 0, None).astype(np.float32)
+    albedo = np.full_like(clean, 0.8)
+    denoised = baselines.oidn(noisy, albedo)
+    assert denoised.shape == clean.shape and denoised.dtype == np.float32
+    gain = metrics.psnr(denoised, clean) - metrics.psnr(baselines.noisy_input(noisy), clean)
+    assert gain > 5.0
+    normal = np.zeros_like(clean)
+    normal[:, :, 2] = 1.0
+    assert metrics.psnr(baselines.oidn(noisy, albedo, normal), clean) - metrics.psnr(noisy, clean) > 5.0
+
+
+def test_oidn_rejects_bad_buffers():
+    color = np.ones((8, 8, 3), dtype=np.float32)
+    with pytest.raises(ValueError, match="albedo must have the colour's shape"):
+        baselines.oidn(color, np.ones((8, 4, 3)))
+    with pytest.raises(ValueError, match="non-negative"):
+        baselines.oidn(-color, color)
+    color[2, 2, 1] = np.inf
+    with pytest.raises(ValueError, match="NaN/inf"):
+        baselines.oidn(color, np.ones_like(color))
+    with pytest.raises(ValueError, match=r"\(H, W, 3\)"):
+        baselines.noisy_input(np.ones((8, 8)))
+
+
+def test_upsamplers_beat_nearest_on_a_smooth_image():
+    high = _smooth(64, 64)
+    low = high.reshape(32, 2, 32, 2, 3).mean(axis=(1, 3))
+    floor = metrics.psnr(baselines.nearest(low), high)
+    for upsample in (baselines.bicubic, baselines.lanczos):
+        result = upsample(low)
+        assert result.shape == high.shape and result.dtype == np.float32
+        assert 0.0 <= result.min() and result.max() <= 1.0
+        assert metrics.psnr(result, high) > floor + 3.0

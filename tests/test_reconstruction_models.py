@@ -1,0 +1,236 @@
+"""Reconstruction networks, loss, HDR transform and fast inference (issue 4, §1 and §5)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from scipy.ndimage import gaussian_laplace
+
+from reconstruction import hdr
+from reconstruction.inference import (
+    DENOISER_HALO,
+    SUPERRESOLUTION_HALO,
+    denoise,
+    make_runner,
+    run_tiled,
+    select_fast_inference,
+    tile_grid,
+)
+from reconstruction.loss import EdgeAwareLoss, LaplacianOfGaussian, normalise_edges
+from reconstruction.models import (
+    POOLING_MULTIPLE,
+    Denoiser,
+    Superresolution,
+    count_parameters,
+    rgb_from_ycbcr,
+    superresolve,
+    ycbcr_from_rgb,
+)
+
+
+@pytest.fixture(scope="module")
+def denoiser() -> Denoiser:
+    torch.manual_seed(0)
+    return Denoiser().eval()
+
+
+@pytest.fixture(scope="module")
+def sr_net() -> Superresolution:
+    torch.manual_seed(1)
+    return Superresolution().eval()
+
+
+def test_parameter_counts_match_the_paper():
+    assert count_parameters(Denoiser()) == 95_107
+    assert count_parameters(Denoiser(("albedo", "normal", "depth"))) == 96_259
+    assert count_parameters(Superresolution()) == 37_793
+
+
+def test_denoiser_rejects_bad_configuration_and_input(denoiser):
+    with pytest.raises(ValueError, match="albedo"):
+        Denoiser(("normal",))
+    with pytest.raises(ValueError, match="ordered subset"):
+        Denoiser(("albedo", "depth", "normal"))
+    with pytest.raises(ValueError, match=r"\(N, 6, H, W\)"):
+        denoiser(torch.zeros(1, 3, 16, 16))
+    with pytest.raises(ValueError, match=r"\(N, 1, H, W\)"):
+        Superresolution()(torch.zeros(1, 3, 16, 16))
+
+
+@pytest.mark.parametrize("size", [(1, 1), (33, 17), (47, 65)])
+def test_any_size_keeps_its_size(denoiser, sr_net, size):
+    with torch.inference_mode():
+        assert denoiser(torch.rand(2, 6, *size)).shape == (2, 3, *size)
+        assert Denoiser(("albedo", "normal", "depth")).eval()(torch.rand(1, 10, *size)).shape == (1, 3, *size)
+        assert sr_net(torch.rand(1, 1, *size)).shape == (1, 1, *size)
+
+
+def test_denoiser_pads_bottom_right_by_replication(denoiser):
+    x = torch.rand(1, 6, 50, 70)
+    padded = torch.nn.functional.pad(x, (0, 96 - 70, 0, 64 - 50), mode="replicate")
+    with torch.inference_mode():
+        torch.testing.assert_close(denoiser(x), denoiser(padded)[..., :50, :70], rtol=0, atol=1e-6)
+
+
+def test_ycbcr_round_trip_and_bt601_values():
+    rgb = np.random.default_rng(0).random((9, 7, 3))
+    np.testing.assert_allclose(rgb_from_ycbcr(ycbcr_from_rgb(rgb)), rgb, atol=1e-12)
+    white = ycbcr_from_rgb(np.ones((1, 1, 3)))[0, 0]
+    np.testing.assert_allclose(white, [1.0, 0.5, 0.5], atol=1e-6)
+    np.testing.assert_allclose(ycbcr_from_rgb(np.array([1.0, 0.0, 0.0]))[0], 0.299)
+    tensor = torch.from_numpy(rgb).permute(2, 0, 1)[None]
+    np.testing.assert_allclose(ycbcr_from_rgb(tensor, channel_axis=-3)[0].permute(1, 2, 0).numpy(), ycbcr_from_rgb(rgb))
+    with pytest.raises(ValueError, match="3 channels"):
+        ycbcr_from_rgb(np.zeros((4, 4, 2)))
+
+
+def test_superresolve_doubles_size_and_keeps_chroma(sr_net):
+    low = np.random.default_rng(2).random((13, 10, 3)).astype(np.float32)
+    high = superresolve(sr_net, low)
+    assert high.shape == (26, 20, 3) and high.dtype == np.float32
+    assert high.min() >= 0.0 and high.max() <= 1.0
+    with pytest.raises(ValueError, match=r"\(H, W, 3\)"):
+        superresolve(sr_net, low[:, :, :2])
+    with pytest.raises(ValueError, match="NaN"):
+        superresolve(sr_net, np.full((4, 4, 3), np.nan))
+
+
+@pytest.mark.parametrize("sigma", [1.4, 1.0])
+def test_log_matches_scipy(sigma):
+    image = np.random.default_rng(3).random((2, 40, 37))
+    log = LaplacianOfGaussian(sigma)
+    ours = log(torch.from_numpy(image)[None])[0].numpy()
+    single = log(torch.from_numpy(image).float()[None])[0].numpy()
+    for channel in range(2):
+        expected = gaussian_laplace(image[channel], sigma, mode="nearest")
+        np.testing.assert_allclose(ours[channel], expected, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(single[channel], expected, rtol=0, atol=1e-6)
+
+
+def test_edge_maps_are_normalised_and_safe_on_constant_images():
+    log = LaplacianOfGaussian(1.4)
+    edges = normalise_edges(log(torch.rand(2, 3, 32, 32)))
+    assert edges.min() == 0.0 and torch.allclose(edges.amax(dim=(-2, -1)), torch.ones(2, 3))
+    constant = torch.full((1, 3, 16, 16), 0.7, requires_grad=True)
+    loss = EdgeAwareLoss(1.4)(constant, torch.full((1, 3, 16, 16), 0.7))
+    loss.backward()
+    assert loss.item() == pytest.approx(0.0, abs=1e-10)
+    assert torch.isfinite(constant.grad).all()
+
+
+def test_loss_weights_and_gradient():
+    torch.manual_seed(4)
+    target = torch.rand(2, 3, 24, 24)
+    prediction = (target + 0.1 * torch.randn_like(target)).requires_grad_()
+    loss_fn = EdgeAwareLoss(1.0)
+    loss = loss_fn(prediction, target)
+    mse = torch.mean((prediction - target) ** 2)
+    edge = torch.mean((normalise_edges(loss_fn.log(prediction)) - normalise_edges(loss_fn.log(target))) ** 2)
+    assert loss.item() == pytest.approx((0.7 * mse + 0.3 * edge).item(), rel=1e-6)
+    loss.backward()
+    assert torch.isfinite(prediction.grad).all() and prediction.grad.abs().sum() > 0
+    assert loss_fn(target, target).item() == 0.0
+    with pytest.raises(ValueError, match="shape"):
+        loss_fn(target, target[:, :2])
+
+
+def test_hdr_round_trip_and_bad_input():
+    radiance = np.array([0.0, 1e-4, 0.5, 1.0, 37.0, 1e4], dtype=np.float32)
+    np.testing.assert_allclose(hdr.decode(hdr.encode(radiance)), radiance, rtol=1e-6)
+    tensor = torch.from_numpy(radiance)
+    torch.testing.assert_close(hdr.decode(hdr.encode(tensor)), tensor, rtol=1e-6, atol=0)
+    assert hdr.encode(np.array([-0.1]))[0] == 0.0
+    assert hdr.decode(np.array([-2.0]))[0] == 0.0
+    bad = np.array([1.0, np.nan, np.inf, -np.inf, -3.0])
+    with pytest.raises(ValueError, match="3 NaN/inf"):
+        hdr.encode(bad)
+    clean, replaced = hdr.sanitize(bad)
+    assert replaced == {"nonfinite": 3, "negative": 1}
+    np.testing.assert_array_equal(clean, [1.0, 0, 0, 0, 0])
+    clean_t, replaced_t = hdr.sanitize(torch.from_numpy(bad))
+    assert replaced_t == replaced and torch.equal(clean_t, torch.from_numpy(clean))
+
+
+def test_denoiser_input_stacking_and_errors():
+    rng = np.random.default_rng(5)
+    color, albedo = rng.random((8, 9, 3)) * 4, rng.random((8, 9, 3))
+    x = hdr.denoiser_input(color, albedo)
+    assert x.shape == (6, 8, 9) and x.dtype == torch.float32
+    np.testing.assert_allclose(x[:3].permute(1, 2, 0).numpy(), np.log1p(color), rtol=1e-6)
+    normal, depth = rng.random((8, 9, 3)) * 2 - 1, rng.random((8, 9)) * 10
+    assert hdr.denoiser_input(color, albedo, normal, depth).shape == (10, 8, 9)
+    with pytest.raises(ValueError, match="albedo must have"):
+        hdr.denoiser_input(color, albedo[:4])
+    with pytest.raises(ValueError, match="together"):
+        hdr.denoiser_input(color, albedo, normal)
+    with pytest.raises(ValueError, match=r"albedo must lie in \[0.0, 1.0\]"):
+        hdr.denoiser_input(color, albedo + 2)
+    color[0, 0, 0] = np.nan
+    with pytest.raises(ValueError, match="NaN/inf"):
+        hdr.denoiser_input(color, albedo)
+
+
+def test_tile_grid_covers_the_frame_once():
+    cores = tile_grid(96, 160, 50, 32)
+    coverage = np.zeros((96, 160), dtype=int)
+    for y0, y1, x0, x1 in cores:
+        assert y0 % 32 == 0 and x0 % 32 == 0
+        coverage[y0:y1, x0:x1] += 1
+    assert (coverage == 1).all()
+
+
+def test_tiled_denoiser_matches_whole_frame(denoiser):
+    torch.manual_seed(6)
+    x = torch.rand(1, 6, 150, 201)
+    with torch.inference_mode():
+        whole = denoiser(x)
+    tiled = run_tiled(denoiser, x, tile=32, halo=DENOISER_HALO, align=POOLING_MULTIPLE, workers=2)
+    assert tiled.shape == whole.shape
+    assert (tiled - whole).abs().max().item() < 1e-5
+    # a halo below the contamination depth visibly breaks the match
+    short = run_tiled(denoiser, x, tile=32, halo=DENOISER_HALO - 32, align=POOLING_MULTIPLE, workers=1)
+    assert (short - whole).abs().max().item() > 1e-6
+    with pytest.raises(ValueError, match="multiple"):
+        run_tiled(denoiser, x, tile=32, halo=40, align=POOLING_MULTIPLE)
+
+
+def test_tiled_superresolution_matches_whole_frame(sr_net):
+    y = torch.rand(1, 1, 70, 53)
+    with torch.inference_mode():
+        whole = sr_net(y)
+    tiled = run_tiled(sr_net, y, tile=20, halo=SUPERRESOLUTION_HALO, workers=2)
+    assert (tiled - whole).abs().max().item() < 1e-5
+
+
+def test_denoise_end_to_end_tiled_equals_whole(denoiser):
+    rng = np.random.default_rng(7)
+    color, albedo = (rng.random((64, 80, 3)) * 3).astype(np.float32), rng.random((64, 80, 3)).astype(np.float32)
+    whole = denoise(denoiser, color, albedo)
+    tiled = denoise(denoiser, color, albedo, tile=32, workers=2)
+    assert whole.shape == (64, 80, 3) and whole.dtype == np.float32 and (whole >= 0).all()
+    assert np.abs(tiled - whole).max() < 1e-4
+    with pytest.raises(ValueError, match="10 input channels"):
+        denoise(Denoiser(("albedo", "normal", "depth")), color, albedo)
+
+
+def test_fast_inference_decision_respects_the_psnr_limit(denoiser):
+    torch.manual_seed(8)
+    x = torch.rand(1, 6, 64, 64)
+    reference = np.random.default_rng(8).random((64, 64, 3))
+    decision = select_fast_inference(denoiser, x, reference, decode=hdr.decode, repeats=2)
+    by_option = {result.option: result for result in decision.results}
+    assert by_option["fp32"].speedup == 1.0 and not by_option["fp32"].accepted
+    for result in decision.results:
+        assert result.accepted == (
+            result.option != "fp32" and abs(result.psnr_change) <= 0.05 and result.speedup >= 1.05
+        )
+        assert result.max_abs_difference < 0.05
+    assert by_option["channels_last"].max_abs_difference < 1e-5
+    assert by_option["jit_freeze"].max_abs_difference < 1e-5
+    chosen = next(r for r in decision.results if r.option == decision.chosen)
+    assert decision.chosen == "fp32" or chosen.accepted
+    strict = select_fast_inference(denoiser, x, reference, decode=hdr.decode, repeats=1, min_speedup=1e9)
+    assert strict.chosen == "fp32"
+    with pytest.raises(ValueError, match="unknown option"):
+        make_runner(denoiser, "fp8")

@@ -1,0 +1,173 @@
+"""Training loop, checkpoints and history (reconstruction/train.py), on the quick dataset with stand-in models."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+from torch import nn
+
+from kdtrace.config import DEFAULT_CONFIG
+from reconstruction import train
+
+SCENE = "cbox-original"
+# the quick dataset, with small batches so three epochs are a dozen Adam steps
+PROFILE = dataclasses.replace(DEFAULT_CONFIG.reconstruction.profile("quick"), batch_size=8, learning_rate=3e-3,
+                              epochs=3)
+
+
+def _psnr(test, reference):
+    """PSNR (dB) of images clipped to [0, 1]: the convention of reconstruction.metrics, kept local."""
+    mse = float(np.mean((np.clip(test, 0, 1) - np.clip(reference, 0, 1)) ** 2))
+    return math.inf if mse == 0 else -10.0 * math.log10(mse)
+
+
+class TinyDenoiser(nn.Module):
+    """Stand-in: two 3x3 convolutions predicting a correction of the noisy RGB."""
+
+    def __init__(self, width: int = 8) -> None:
+        super().__init__()
+        self.first = nn.Conv2d(6, width, 3, padding=1)
+        self.second = nn.Conv2d(width, 3, 3, padding=1)
+
+    def forward(self, x):
+        return x[:, :3] + self.second(torch.relu(self.first(x)))
+
+
+class OtherTiny(TinyDenoiser):
+    """Same parameter shapes, another architecture."""
+
+
+class TinyY(nn.Module):
+    """Stand-in superresolution net on luma."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.first = nn.Conv2d(1, 4, 3, padding=1)
+        self.second = nn.Conv2d(4, 1, 3, padding=1)
+
+    def forward(self, y):
+        return y + self.second(torch.relu(self.first(y)))
+
+
+class InterruptAfter(nn.MSELoss):
+    """MSE that raises KeyboardInterrupt at its ``limit``-th training call (gradients on)."""
+
+    def __init__(self, limit: int) -> None:
+        super().__init__()
+        self.limit, self.calls = limit, 0
+
+    def forward(self, prediction, target):
+        if torch.is_grad_enabled():
+            self.calls += 1
+            if self.calls > self.limit:
+                raise KeyboardInterrupt
+        return super().forward(prediction, target)
+
+
+@pytest.fixture(scope="module")
+def cache(tmp_path_factory):
+    with pytest.MonkeyPatch.context() as patch:
+        directory = tmp_path_factory.mktemp("cache")
+        patch.setenv("KDTRACE_CACHE", str(directory))
+        yield directory
+
+
+def _train(directory, loss_fn=None, model=None):
+    torch.manual_seed(PROFILE.seed)
+    return train.train_denoiser([SCENE], PROFILE, model=model or TinyDenoiser(), loss_fn=loss_fn or nn.MSELoss(),
+                                directory=directory, psnr=_psnr, progress=False)
+
+
+@pytest.fixture(scope="module")
+def trained(cache):
+    return _train(cache / "run")
+
+
+def test_training_reduces_the_loss_and_writes_history_plot_and_checkpoints(trained):
+    history = trained.history
+    assert [row["epoch"] for row in history] == [1, 2, 3]
+    losses = [row["train_loss"] for row in history]
+    assert losses[-1] < losses[0]
+    assert all(math.isfinite(row["validation_psnr"]) and math.isfinite(row["train_psnr"]) for row in history)
+    best = min(history, key=lambda row: row["validation_loss"])
+    assert trained.best_epoch == best["epoch"]
+    assert json.loads((trained.directory / "history.json").read_text()) == history
+    rows = (trained.directory / "history.csv").read_text().splitlines()
+    assert rows[0].split(",")[:5] == ["epoch", "train_loss", "validation_loss", "train_psnr", "validation_psnr"]
+    assert len(rows) == 4
+    assert (trained.directory / "training.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    checkpoint = train.read_checkpoint(trained.directory / "checkpoint.pt")
+    assert checkpoint["architecture"] == "TinyDenoiser" and checkpoint["epoch"] == 3
+    assert checkpoint["parameters"] == train.parameter_count(TinyDenoiser()) == 6 * 8 * 9 + 8 + 8 * 3 * 9 + 3
+    assert checkpoint["data_hash"] == trained.data_hash
+    kept = train.read_checkpoint(trained.directory / "best.pt")
+    assert kept["epoch"] == trained.best_epoch
+    for name, value in trained.model.state_dict().items():
+        torch.testing.assert_close(kept["model"][name], value)
+    result = json.loads((trained.directory / "result.json").read_text())
+    assert result["scenes"] == [SCENE] and set(result["test"]) >= {"psnr", "rmse", "loss"}
+    assert not [path for path in trained.directory.iterdir() if path.name.startswith(".")]
+
+
+def test_interrupted_training_resumes_from_the_last_epoch(cache, trained):
+    steps = math.ceil(len(train.denoiser_data([SCENE], PROFILE)[0]["train"][0]) / PROFILE.batch_size)
+    with pytest.raises(KeyboardInterrupt):
+        _train(cache / "interrupted", InterruptAfter(2 * steps + 1))
+    assert train.read_checkpoint(cache / "interrupted" / "checkpoint.pt")["epoch"] == 2
+    resumed_loss = InterruptAfter(10**9)
+    resumed = _train(cache / "interrupted", resumed_loss)
+    assert resumed_loss.calls == steps  # only the third epoch was trained
+    for row, reference in zip(resumed.history, trained.history, strict=True):
+        for name in ("train_loss", "validation_loss", "train_psnr", "validation_psnr"):
+            assert row[name] == pytest.approx(reference[name], rel=1e-5)
+    # a finished training is not trained again
+    finished_loss = InterruptAfter(0)
+    assert _train(cache / "interrupted", finished_loss).history == resumed.history and finished_loss.calls == 0
+
+
+def test_wrong_architecture_or_foreign_checkpoint_is_a_clear_error(cache, trained):
+    with pytest.raises(ValueError, match="holds a TinyDenoiser"):
+        train.load_checkpoint(trained.directory / "best.pt", OtherTiny())
+    with pytest.raises(ValueError, match="parameters"):
+        train.load_checkpoint(trained.directory / "best.pt", TinyDenoiser(width=4))
+    with pytest.raises(ValueError, match="holds a TinyDenoiser"):
+        _train(trained.directory, model=OtherTiny())
+    foreign = cache / "foreign.pt"
+    torch.save({"weights": torch.zeros(3)}, foreign)
+    with pytest.raises(ValueError, match="not a kdtrace reconstruction checkpoint"):
+        train.load_checkpoint(foreign, TinyDenoiser())
+    corrupt = cache / "corrupt.pt"
+    corrupt.write_bytes((trained.directory / "best.pt").read_bytes()[:100])
+    with pytest.raises(ValueError, match="not a readable checkpoint"):
+        train.load_checkpoint(corrupt, TinyDenoiser())
+    model = TinyDenoiser()
+    train.load_checkpoint(trained.directory / "best.pt", model)
+    for name, value in trained.model.state_dict().items():
+        torch.testing.assert_close(model.state_dict()[name], value)
+
+
+def test_evaluate_reports_psnr_and_rmse_on_linear_values():
+    target = torch.full((2, 3, 4, 4), 0.5)
+    noisy = target + 0.1
+    metrics = train.evaluate(nn.Identity(), (noisy, target), nn.MSELoss(), psnr=_psnr)
+    assert metrics["rmse"] == pytest.approx(0.1, rel=1e-5)
+    assert metrics["psnr"] == pytest.approx(20.0, rel=1e-5)
+    assert metrics["loss"] == pytest.approx(0.01, rel=1e-4) and metrics["count"] == 2
+    with pytest.raises(ValueError, match="non-empty"):
+        train.evaluate(nn.Identity(), (noisy[:0], target[:0]), psnr=_psnr)
+
+
+def test_superres_training_on_photos_and_renders(cache):
+    profile = dataclasses.replace(PROFILE, epochs=2)
+    torch.manual_seed(profile.seed)
+    result = train.train_superres(profile, [SCENE], model=TinyY(), loss_fn=nn.MSELoss(), directory=cache / "sr",
+                                  psnr=_psnr, progress=False)
+    assert len(result.history) == 2
+    record = json.loads((cache / "sr" / "result.json").read_text())
+    assert record["architecture"] == "TinyY"
+    assert math.isfinite(record["test"]["psnr"]) and math.isfinite(record["test"]["bicubic"]["psnr"])
