@@ -150,7 +150,7 @@ def markdown_table(table: pd.DataFrame) -> str:
             "incoherent Mrays/s naive/local/Embree": f"{row['incoherent_mrays_naive']:.2f} / {row['incoherent_mrays_local']:.2f} / {row['incoherent_mrays_embree']:.2f}",
             "local/naive speed": f"{row['incoherent_local_over_naive']:.2f}",
             "paper local/naive speed": f"{paper['naive_frame_seconds'] / paper['local_frame_seconds']:.2f}" if paper else "",
-            "unexplained vs Embree": f"{row['unexplained']} of {row['agreement_rays']}",
+            "unexplained vs Embree": f"{row['unexplained']} of {row['agreement_rays']:,} ray comparisons",
         })
     return tabulate(lines, headers="keys", tablefmt="github")
 
