@@ -14,7 +14,8 @@ explained with float64 arithmetic as one of:
     the hit lies within tolerance of ``tmax`` (shadow rays ending at the light);
 ``grazing``
     the ray is nearly parallel to the triangle, so the sign of the float32
-    determinant is noise;
+    determinant is noise (this includes rays lying in the triangle's plane, whose
+    barycentrics are undefined);
 ``edge/vertex``
     the hit lies within float32 precision of an edge or vertex of the triangle,
     where watertightness is decided by rounding;
@@ -196,7 +197,12 @@ def _reasons(
     with np.errstate(divide="ignore", invalid="ignore"):
         tol_bary = position / cos / geometry.h_min[tri]
     on_triangle = ~zero & (hit["min_bary"] >= -tol_bary)
-    grazing = on_triangle & (np.abs(hit["cos"]) <= geometry.grazing_cos[tri])
+    parallel = np.abs(hit["cos"]) <= geometry.grazing_cos[tri]
+    # A ray lying in the triangle's plane (e.g. along an edge) has a (near-)zero
+    # determinant: its barycentrics are noise, and so is any hit either side reports.
+    plane_offset = np.einsum("ij,ij->i", origins - geometry.v0[tri], geometry.normal[tri])
+    in_plane = ~zero & parallel & (np.abs(plane_offset) <= position_tolerance(origins, directions, np.zeros(len(tri)), geometry.scale))
+    grazing = (on_triangle & parallel) | in_plane
     edge = on_triangle & (hit["min_bary"] <= tol_bary)
     at_tmax = on_triangle & np.isfinite(tmax) & (np.abs(t - tmax) <= tol_t)
     at_tmin = on_triangle & ~grazing & (np.abs(t) <= tol_t)

@@ -169,3 +169,13 @@ def test_origin_on_surface_is_explained_only_at_t_zero(quad):
     ours = answer([2.0, 2.5], [3, 3])  # went on to the far wall
     labels = ag.compare_hits(quad, origins, directions, ours, theirs).labels
     assert list(labels) == [ag.TMIN, ag.UNEXPLAINED]
+
+
+def test_ray_in_the_triangle_plane_is_grazing(quad):
+    """A ray lying in the quad's plane (along the shared diagonal's plane z = 1): any hit is noise."""
+    origins = np.array([[-1.0, 0.5, 1.0], [-1.0, 0.5, 1.5]])
+    directions = np.tile([1.0, 0.0, 0.0], (2, 1))
+    theirs = answer([1.5, 1.5], [1, 1])
+    ours = answer([np.inf, np.inf], [-1, -1])
+    labels = ag.compare_hits(quad, origins, directions, ours, theirs).labels
+    assert list(labels) == [ag.GRAZING, ag.UNEXPLAINED]  # the second ray is half a unit above the plane

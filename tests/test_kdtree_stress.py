@@ -30,7 +30,6 @@ from kdtrace.oracle import intersect_brute_force
 from kdtrace.scene import Material, Scene
 from references.agreement import (
     EXPLANATIONS,
-    GRAZING,
     UNEXPLAINED,
     TriangleGeometry,
     compare_hits,
@@ -124,29 +123,6 @@ def in_plane(geometry: TriangleGeometry, tri: np.ndarray, origins, directions, t
     return (np.abs(cos) <= geometry.grazing_cos[tri]) & (np.abs(at_origin) <= tol) & (np.abs(at_hit) <= tol)
 
 
-def explain_in_plane(geometry: TriangleGeometry, labels, answers, origins, directions):
-    """Label GRAZING the unexplained rays whose reported triangles all lie in the ray's plane.
-
-    ``compare_hits`` / ``compare_occlusion`` cannot explain those: their float64 re-test
-    of a ray lying in the triangle's plane divides by a (near-)zero determinant, the
-    barycentrics are NaN or noise and no explanation, not even grazing, applies, although
-    any hit reported on such a triangle (at any t) is rounding noise: e.g. rays along an edge.
-    ``answers``: the (t, tri) pairs of both sides.
-    """
-    labels = labels.copy()
-    for i in np.flatnonzero(labels == UNEXPLAINED):
-        reported = [(t[i], tri[i]) for t, tri in answers if tri[i] >= 0]
-        if not reported:
-            continue
-        t = np.array([r[0] for r in reported], dtype=np.float64)
-        tris = np.array([r[1] for r in reported], dtype=np.int64)
-        o = np.broadcast_to(origins[i], (len(tris), 3))
-        d = np.broadcast_to(directions[i], (len(tris), 3))
-        if in_plane(geometry, tris, o, d, t).all():
-            labels[i] = GRAZING
-    return labels
-
-
 def check_intersect(case: StressScene, trees: dict, origins, directions, tmin=0.0, tmax=np.inf, exact=False) -> dict:
     """Closest hits of every tree vs the oracle: sane answers, no unexplained disagreement.
 
@@ -162,7 +138,6 @@ def check_intersect(case: StressScene, trees: dict, origins, directions, tmin=0.
         ours = tree.intersect(origins, directions, tmin, tmax)
         check_sane(scene, ours, tmin, tmax)
         labels = compare_hits(scene, origins, directions, ours, theirs, tmax=tmax, geometry=geometry).labels
-        labels = explain_in_plane(geometry, labels, [ours[:2], theirs[:2]], origins, directions)
         bad = np.flatnonzero(labels == UNEXPLAINED)
         assert len(bad) == 0, _describe(case, variant, bad, origins, directions, ours, theirs, labels)
         # Same triangle => the same float64 Möller–Trumbore: the distances agree to float64
@@ -188,9 +163,6 @@ def check_occluded(case: StressScene, trees: dict, origins, directions, tmax) ->
         blocked = tree.occluded(origins, directions, tmax)
         assert blocked.dtype == bool and blocked.shape == expected.shape
         labels = compare_occlusion(scene, origins, directions, tmax, blocked, expected, geometry=geometry).labels
-        if (labels == UNEXPLAINED).any():  # in-plane occluders: see explain_in_plane (ours = closest hit below tmax)
-            closest = tree.intersect(origins, directions, 0.0, tmax)
-            labels = explain_in_plane(geometry, labels, [closest[:2]], origins, directions)
         bad = np.flatnonzero(labels == UNEXPLAINED)
         assert len(bad) == 0, (
             f"{case!r}, variant {variant}: occluded disagrees on {len(bad)} rays, first: "
