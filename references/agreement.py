@@ -175,8 +175,9 @@ def exact_hits(geometry: TriangleGeometry, tri: np.ndarray, origins: np.ndarray,
         u = np.einsum("ij,ij->i", s, p) * inv
         v = np.einsum("ij,ij->i", directions, q) * inv
         t = np.einsum("ij,ij->i", e2, q) * inv
+        min_bary = np.minimum(np.minimum(u, v), 1.0 - u - v)
     cos = np.einsum("ij,ij->i", directions, geometry.normal[tri]) / np.linalg.norm(directions, axis=1)
-    return {"t": t, "u": u, "v": v, "min_bary": np.minimum(np.minimum(u, v), 1.0 - u - v), "cos": cos}
+    return {"t": t, "u": u, "v": v, "min_bary": min_bary, "cos": cos}
 
 
 def _reasons(
@@ -188,6 +189,14 @@ def _reasons(
     ``tol < t < tmax - tol`` and ``"in_range"`` a plane crossing within tolerance
     of ``[0, tmax]``.
     """
+    # Rays parallel to a triangle give inf/NaN plane distances; they fail every test below.
+    with np.errstate(invalid="ignore"):
+        return _reasons_of(geometry, tri, origins, directions, tmax)
+
+
+def _reasons_of(
+    geometry: TriangleGeometry, tri: np.ndarray, origins: np.ndarray, directions: np.ndarray, tmax: np.ndarray
+) -> dict[str, np.ndarray]:
     hit = exact_hits(geometry, tri, origins, directions)
     zero = geometry.degenerate[tri]
     t = np.where(zero, 0.0, hit["t"])
