@@ -39,7 +39,8 @@ Superresolution (37,793 trainable parameters)
 relu(conv 9×9 1→32) [2,624] → relu(conv 3×3 32→32) [9,248] → relu(conv 5×5 32→32)
 [25,632] → conv 3×3 32→1 [289]; "same" padding by edge replication. The net sees the Y
 channel of the bicubic 2×-upsampled image and predicts a correction added to it
-(residual form: a parameter-free choice, so an untrained net starts at bicubic quality).
+(residual form, a parameter-free choice; the last convolution is zero-initialised, so an
+untrained net returns its input exactly and starts at bicubic quality).
 """
 
 from __future__ import annotations
@@ -148,6 +149,11 @@ class Superresolution(nn.Module):
             nn.Conv2d(c_in, c_out, k, padding=k // 2, padding_mode="replicate")
             for c_in, c_out, k in ((1, FILTERS, 9), (FILTERS, FILTERS, 3), (FILTERS, FILTERS, 5), (FILTERS, 1, 3))
         )
+        # The correction layer starts at zero so the untrained net returns its input exactly
+        # (bicubic quality) and training departs from there; with PyTorch's default random
+        # init it would start below bicubic and a short training may not climb back.
+        nn.init.zeros_(self.layers[-1].weight)
+        nn.init.zeros_(self.layers[-1].bias)
 
     @property
     def config(self) -> dict:

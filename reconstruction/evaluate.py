@@ -1,0 +1,232 @@
+"""The quality table: denoiser and superresolution against their baselines on held-out views.
+
+For each scene, on the **test views** of its Precision Graphics dataset (whole views, never
+seen in training or model selection):
+
+* **denoising** — the noisy input, our denoiser and Intel Open Image Denoise
+  (:func:`reconstruction.baselines.oidn`, with albedo and normal), each against the
+  reference render;
+* **superresolution 2×** — bicubic (the net's own input, :func:`reconstruction.data.degrade`
+  with the profile's ``superres_downsample``) and our Y-channel net, each against the
+  reference clipped to [0, 1].
+
+Metrics are **pooled over the split**: RMSE is the root of the mean squared error over
+every pixel and channel of every test view (linear values clipped to [0, 1], the
+convention of :mod:`reconstruction.metrics`), and PSNR = −20·log10(RMSE). The mean of
+per-image PSNRs is reported beside it (``psnr_mean``) but not used for comparisons: it is
+inflated by flat, nearly error-free images (a crop of a plain wall can reach 50 dB).
+
+Entry point :func:`main_quality` trains (or reuses, by content key) the per-scene
+denoisers and one superresolution net over the given scenes, then writes the table as
+Markdown and CSV, each atomically.
+"""
+
+from __future__ import annotations
+
+import io
+import math
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import torch
+from torch import nn
+
+from kdtrace.cache import atomic_write_bytes
+from kdtrace.config import DEFAULT_CONFIG, ReconstructionProfile
+
+#: Columns of the quality table, in order.
+COLUMNS = ("scene", "task", "method", "psnr", "rmse", "psnr_mean", "images", "pixels")
+
+
+def _resolve(profile: str | ReconstructionProfile) -> ReconstructionProfile:
+    return DEFAULT_CONFIG.reconstruction.profile(profile) if isinstance(profile, str) else profile
+
+
+def pooled(predictions: Sequence[np.ndarray], references: Sequence[np.ndarray]) -> dict[str, float]:
+    """Pooled RMSE and PSNR, and the mean per-image PSNR, of image pairs clipped to [0, 1].
+
+    Parameters
+    ----------
+    predictions, references : sequences of ndarray
+        Matching shapes per pair (any layout, e.g. (H, W, 3)).
+
+    Returns
+    -------
+    dict
+        ``rmse`` (over all values of all pairs), ``psnr`` (−20·log10 of it, ``inf`` if
+        zero), ``psnr_mean`` (mean of the per-image PSNRs, each capped at 100 dB),
+        ``images`` and ``pixels`` (values counted / channels are not separated).
+    """
+    if len(predictions) == 0 or len(predictions) != len(references):
+        raise ValueError(f"need matching, non-empty image lists, got {len(predictions)} and {len(references)}")
+    squared, count, per_image = 0.0, 0, []
+    for prediction, reference in zip(predictions, references):
+        prediction, reference = np.asarray(prediction, np.float64), np.asarray(reference, np.float64)
+        if prediction.shape != reference.shape:
+            raise ValueError(f"prediction {prediction.shape} and reference {reference.shape} differ in shape")
+        if not (np.all(np.isfinite(prediction)) and np.all(np.isfinite(reference))):
+            raise ValueError("images contain NaN/inf values")
+        error = float(np.sum((np.clip(prediction, 0, 1) - np.clip(reference, 0, 1)) ** 2))
+        squared += error
+        count += prediction.size
+        mse = error / prediction.size
+        per_image.append(100.0 if mse == 0 else min(100.0, -10.0 * math.log10(mse)))
+    rmse = math.sqrt(squared / count)
+    return {"psnr": math.inf if rmse == 0 else -20.0 * math.log10(rmse), "rmse": rmse,
+            "psnr_mean": float(np.mean(per_image)), "images": len(per_image), "pixels": count}
+
+
+def denoise_view(model: nn.Module, view: dict[str, np.ndarray], auxiliary: tuple[str, ...] = ("albedo",)) -> np.ndarray:
+    """Denoise one whole view of a dataset with ``model``; (H, W, 3) linear radiance."""
+    from reconstruction.hdr import decode
+    from reconstruction.train import denoiser_tensors
+
+    planes = {name: view[name].transpose(2, 0, 1)[None] for name in ("noisy", "reference", *auxiliary)}
+    inputs, _ = denoiser_tensors(planes, auxiliary)
+    was_training = model.training
+    model.eval()
+    with torch.no_grad():
+        output = decode(model(inputs))
+    model.train(was_training)
+    return output[0].permute(1, 2, 0).numpy()
+
+
+def denoiser_quality(model: nn.Module, dataset, split: str = "test", auxiliary: tuple[str, ...] = ("albedo",),
+                     with_oidn: bool = True) -> dict[str, dict[str, float]]:
+    """Pooled metrics of noisy input, ``model`` and (optionally) OIDN on the views of one split.
+
+    Returns
+    -------
+    dict
+        Method (``"noisy"``, ``"ours"``, ``"oidn"``) -> :func:`pooled` metrics.
+    """
+    from reconstruction.baselines import noisy_input, oidn
+
+    outputs: dict[str, list[np.ndarray]] = {"noisy": [], "ours": [], **({"oidn": []} if with_oidn else {})}
+    references = []
+    for name in dataset.views(split):
+        view = dataset.load_view(name)
+        references.append(view["reference"])
+        outputs["noisy"].append(noisy_input(view["noisy"]))
+        outputs["ours"].append(denoise_view(model, view, auxiliary))
+        if with_oidn:
+            outputs["oidn"].append(oidn(view["noisy"], view["albedo"], view["normal"]))
+    return {method: pooled(images, references) for method, images in outputs.items()}
+
+
+def superres_quality(model: nn.Module, dataset, split: str = "test", downsample: str = "area") -> dict[str, dict[str, float]]:
+    """Pooled metrics of bicubic and ``model`` 2× upsampling of the references of one split.
+
+    Each reference (clipped to [0, 1]) is reduced 2× (``downsample``) and upsampled back
+    bicubically (:func:`reconstruction.data.degrade`, the net's input); ours replaces the
+    Y channel by the net's output and keeps bicubic Cb, Cr (as
+    :func:`reconstruction.models.superresolve`).
+
+    Returns
+    -------
+    dict
+        ``"bicubic"`` and ``"ours"`` -> :func:`pooled` metrics (RGB).
+    """
+    from reconstruction.data import degrade
+    from reconstruction.models import rgb_from_ycbcr, ycbcr_from_rgb
+
+    names = dataset.views(split)
+    targets = np.stack([np.clip(dataset.load_view(name)["reference"], 0.0, 1.0).transpose(2, 0, 1) for name in names])
+    if targets.shape[2] % 2 or targets.shape[3] % 2:  # degrade needs even sides
+        targets = targets[:, :, : targets.shape[2] // 2 * 2, : targets.shape[3] // 2 * 2]
+    bicubic = torch.from_numpy(degrade(np.ascontiguousarray(targets, np.float32), downsample))
+    was_training = model.training
+    model.eval()
+    with torch.no_grad():
+        ycbcr = ycbcr_from_rgb(bicubic, channel_axis=-3)
+        ours = rgb_from_ycbcr(torch.cat([model(ycbcr[:, :1]), ycbcr[:, 1:]], dim=1), channel_axis=-3).clamp(0, 1)
+    model.train(was_training)
+    return {"bicubic": pooled(_images(bicubic.numpy()), _images(targets)),
+            "ours": pooled(_images(ours.numpy()), _images(targets))}
+
+
+def _images(batch: np.ndarray) -> list[np.ndarray]:
+    """(N, C, H, W) -> list of (H, W, C)."""
+    return [image.transpose(1, 2, 0) for image in np.asarray(batch)]
+
+
+def quality_rows(scene: str, denoising: dict[str, dict[str, float]] | None,
+                 superres: dict[str, dict[str, float]] | None) -> list[dict]:
+    """Rows of the quality table for one scene (see :data:`COLUMNS`)."""
+    rows = []
+    for task, results in (("denoise", denoising), ("superres", superres)):
+        for method, metrics in (results or {}).items():
+            rows.append({"scene": scene, "task": task, "method": method,
+                         **{name: metrics[name] for name in COLUMNS[3:]}})
+    return rows
+
+
+def to_markdown(table: pd.DataFrame) -> str:
+    """A GitHub Markdown table of ``table`` (floats to 3 decimals for dB, 5 for RMSE)."""
+    def cell(column: str, value) -> str:
+        if isinstance(value, float):
+            return f"{value:.5f}" if column == "rmse" else f"{value:.3f}"
+        return str(value)
+
+    lines = ["| " + " | ".join(table.columns) + " |", "|" + "---|" * len(table.columns)]
+    lines += ["| " + " | ".join(cell(c, v) for c, v in zip(table.columns, row)) + " |"
+              for row in table.itertuples(index=False)]
+    return "\n".join(lines) + "\n"
+
+
+def write_table(table: pd.DataFrame, out_dir: str | Path, stem: str = "quality") -> tuple[Path, Path]:
+    """Write ``table`` to ``out_dir/<stem>.md`` and ``<stem>.csv``, each atomically."""
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    text = io.StringIO()
+    table.to_csv(text, index=False)
+    csv_path = atomic_write_bytes(out_dir / f"{stem}.csv", text.getvalue().encode())
+    markdown_path = atomic_write_bytes(out_dir / f"{stem}.md", to_markdown(table).encode())
+    return markdown_path, csv_path
+
+
+def main_quality(scene_names: Sequence[str], profile: str | ReconstructionProfile = "quick",
+                 out_dir: str | Path = "quality", with_oidn: bool = True,
+                 progress: bool | None = None) -> pd.DataFrame:
+    """Train (or reuse) the models and tabulate their quality on every scene's test views.
+
+    Per scene: the per-scene (Precision Graphics) denoiser against the noisy input and
+    OIDN; one superresolution net trained on the photos plus the training views of all
+    ``scene_names``, against bicubic. Models and datasets are cached by content key
+    (:mod:`reconstruction.train`, :mod:`reconstruction.data`), so a rerun only evaluates.
+
+    Parameters
+    ----------
+    scene_names : sequence of str
+    profile : str or ReconstructionProfile
+    out_dir : str or Path
+        Receives ``quality.md`` and ``quality.csv``.
+    with_oidn : bool
+        Include the OIDN baseline (needs ``pyoidn``).
+    progress : bool, optional
+        Progress bars (None: only on a terminal).
+
+    Returns
+    -------
+    pandas.DataFrame
+        Columns :data:`COLUMNS`, one row per scene, task and method.
+    """
+    from reconstruction.data import generate_dataset
+    from reconstruction.train import train_denoiser, train_superres
+
+    profile = _resolve(profile)
+    scene_names = list(scene_names)
+    if not scene_names:
+        raise ValueError("no scenes given")
+    datasets = {name: generate_dataset(name, profile, progress) for name in scene_names}
+    superres_model = train_superres(profile, scene_names, progress=progress).model
+    rows = []
+    for name, dataset in datasets.items():
+        denoiser = train_denoiser([name], profile, progress=progress).model
+        rows += quality_rows(name, denoiser_quality(denoiser, dataset, "test", with_oidn=with_oidn),
+                             superres_quality(superres_model, dataset, "test", profile.superres_downsample))
+    table = pd.DataFrame(rows, columns=list(COLUMNS))
+    write_table(table, out_dir)
+    return table
