@@ -93,6 +93,14 @@ def _compare_mitsuba(args, config) -> int:
     return 0 if summary.get("passed") else 1
 
 
+def _quality(args, config) -> int:
+    from reconstruction.evaluate import main_quality
+
+    table = main_quality(args.scenes.split(","), args.profile, args.out, progress=True)
+    print(tabulate(table, headers="keys", tablefmt="github", showindex=False))
+    return 0
+
+
 def _report(args, config) -> int:
     from reports import table1
 
@@ -168,6 +176,12 @@ def build_parser() -> argparse.ArgumentParser:
     compare.add_argument("--height", type=int, default=32)
     compare.add_argument("--out", default="out/compare", help="folder for images, error and p-value maps")
     compare.set_defaults(run=_compare_mitsuba)
+
+    quality = sub.add_parser("quality", help="train (or reuse) the denoiser and superresolution nets; tabulate test quality")
+    quality.add_argument("--scenes", default="cbox-original", help="comma-separated scene names")
+    quality.add_argument("--profile", default="quick", help="reconstruction profile (quick, paper)")
+    quality.add_argument("--out", default="reports/quality", help="folder for quality.md and quality.csv")
+    quality.set_defaults(run=_quality)
 
     report = sub.add_parser("report", help="the main job: regenerate Table 1 for a profile")
     report.add_argument("--profile", default="quick", help="profile name from the configuration (quick, paper)")
