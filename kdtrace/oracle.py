@@ -10,7 +10,8 @@ from __future__ import annotations
 import numpy as np
 
 
-def _as_rays(origins: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def as_float64_rays(origins: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Ray origins and directions as float64 arrays, both of shape (N, 3), or a ValueError."""
     origins = np.asarray(origins, dtype=np.float64)
     directions = np.asarray(directions, dtype=np.float64)
     if origins.ndim != 2 or origins.shape[1] != 3 or directions.shape != origins.shape:
@@ -51,7 +52,7 @@ def intersect_brute_force(
     u, v : (N,) float64
         Barycentric coordinates of the hit (weights of vertices 1 and 2).
     """
-    origins, directions = _as_rays(origins, directions)
+    origins, directions = as_float64_rays(origins, directions)
     corners = np.asarray(vertices, dtype=np.float64)[np.asarray(triangles)]
     if skip is not None:
         keep = np.flatnonzero(~np.asarray(skip, dtype=bool))

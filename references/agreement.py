@@ -44,6 +44,7 @@ from dataclasses import dataclass
 import numpy as np
 import pandas as pd
 
+from kdtrace.oracle import as_float64_rays
 from kdtrace.scene import Scene
 
 #: Unit roundoff of float32.
@@ -248,14 +249,6 @@ class Comparison:
         return {"rays": len(self.labels), **{name: int(np.sum(self.labels == name)) for name in LABELS}}
 
 
-def _as_rays(origins: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    origins = np.asarray(origins, dtype=np.float64)
-    directions = np.asarray(directions, dtype=np.float64)
-    if origins.ndim != 2 or origins.shape[1] != 3 or directions.shape != origins.shape:
-        raise ValueError(f"origins and directions must both have shape (N, 3), got {origins.shape} and {directions.shape}")
-    return origins, directions
-
-
 def _as_tmax(tmax: float | np.ndarray | None, n: int) -> np.ndarray:
     return np.broadcast_to(np.asarray(np.inf if tmax is None else tmax, dtype=np.float64), (n,))
 
@@ -292,7 +285,7 @@ def compare_hits(
         applicable explanation among the triangles either side reported, checked
         in float64, or :data:`UNEXPLAINED`.
     """
-    origins, directions = _as_rays(origins, directions)
+    origins, directions = as_float64_rays(origins, directions)
     n = len(origins)
     geometry = TriangleGeometry.of(scene) if geometry is None else geometry
     tmax = _as_tmax(tmax, n)
@@ -387,7 +380,7 @@ def compare_occlusion(
     -------
     Comparison
     """
-    origins, directions = _as_rays(origins, directions)
+    origins, directions = as_float64_rays(origins, directions)
     n = len(origins)
     geometry = TriangleGeometry.of(scene) if geometry is None else geometry
     tmax = _as_tmax(tmax, n)
