@@ -96,7 +96,7 @@ def clip_to_box(box, ox, oy, oz, dx, dy, dz, tmin, tmax):
     return t0, t1
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")  # inlined: no per-ray call, no reference counting of the arrays
 def trace_ray(
     nodes, splits, refs, box, corners,
     ox, oy, oz, dx, dy, dz, tmin, tmax, any_hit, st_node, st_ent, st_ext,
