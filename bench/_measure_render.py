@@ -337,16 +337,8 @@ def measure_specialisation(benchmark, bench: RenderBench, kernel: str, size: tup
         return render(bench.scene, max_depth=MAX_DEPTH, seed=bench.seed, spp=spp, width=width, height=height,
                       features=features[which], tree=bench.tree("local"))
 
-    result, seconds = timed_render(benchmark, lambda: run(kernel))
-    bench.images[(f"kernel-{kernel}", width, height, spp)] = result
-    other = next(k for k in KERNELS if k != kernel)
-    reference = bench.images.get((f"kernel-{other}", width, height, spp)) or run(other)
-    bench.images[(f"kernel-{other}", width, height, spp)] = reference
-    check = check_near_identical(result, reference, f"{bench.scene.name} {kernel} vs {other} kernel")
-    info = _common(bench, "specialisation", width, height, spp) | {"kernel_requested": kernel} | _kdtrace_info(result, seconds)
-    if kernel == KERNELS[-1]:
-        info["paired"] = paired_ratio(lambda: run("general"), lambda: run("specialised"))
-    return info | {"agreement": check}
+    return _measure_pair(benchmark, bench, "specialisation", KERNELS, kernel, run, size, spp, image_prefix="kernel",
+                         noun="kernel", info_key="kernel_requested", paired_order=("general", "specialised"))
 
 
 def measure_frame(benchmark, bench: RenderBench, variant: str, size: tuple[int, int] = FRAME_SIZE,
@@ -360,15 +352,30 @@ def measure_frame(benchmark, bench: RenderBench, variant: str, size: tuple[int, 
         return render(bench.scene, max_depth=MAX_DEPTH, seed=bench.seed, spp=spp, width=width, height=height,
                       tree=bench.tree(which))
 
-    result, seconds = timed_render(benchmark, lambda: run(variant))
-    bench.images[(f"frame-{variant}", width, height, spp)] = result
-    other = next(v for v in VARIANTS if v != variant)
-    reference = bench.images.get((f"frame-{other}", width, height, spp)) or run(other)
-    bench.images[(f"frame-{other}", width, height, spp)] = reference
-    check = check_near_identical(result, reference, f"{bench.scene.name} {variant} vs {other} tree")
-    info = _common(bench, "frame", width, height, spp) | {"variant": variant} | _kdtrace_info(result, seconds)
-    if variant == VARIANTS[-1]:
-        info["paired"] = paired_ratio(lambda: run("local"), lambda: run("naive"))
+    return _measure_pair(benchmark, bench, "frame", VARIANTS, variant, run, size, spp, image_prefix="frame",
+                         noun="tree", info_key="variant", paired_order=("local", "naive"))
+
+
+def _measure_pair(benchmark, bench: RenderBench, group: str, choices: tuple[str, ...], choice: str, run,
+                  size: tuple[int, int], spp: int, *, image_prefix: str, noun: str, info_key: str,
+                  paired_order: tuple[str, str]) -> dict[str, Any]:
+    """Time ``run(choice)``; check its image against the other choice's (rendered untimed if needed).
+
+    Images are kept in ``bench.images`` under ``("<image_prefix>-<choice>", width, height, spp)``. The last choice also records the paired ratio
+    ``paired_order[0] / paired_order[1]`` of back-to-back renders.
+    """
+    width, height = size
+    result, seconds = timed_render(benchmark, lambda: run(choice))
+    bench.images[(f"{image_prefix}-{choice}", width, height, spp)] = result
+    other = next(c for c in choices if c != choice)
+    key = (f"{image_prefix}-{other}", width, height, spp)
+    reference = bench.images.get(key) or run(other)
+    bench.images[key] = reference
+    check = check_near_identical(result, reference, f"{bench.scene.name} {choice} vs {other} {noun}")
+    info = _common(bench, group, width, height, spp) | {info_key: choice}
+    info |= _kdtrace_info(result, seconds)
+    if choice == choices[-1]:
+        info["paired"] = paired_ratio(lambda: run(paired_order[0]), lambda: run(paired_order[1]))
     return info | {"agreement": check}
 
 
