@@ -90,6 +90,20 @@ class ProfileConfig:
         The primary-ray frame timed for Table 1 (pixels, samples per pixel).
     seed : int
         Seed of every ray generator.
+    reconstruction_profile : str
+        Name of the ``[reconstruction.profiles.*]`` entry used for datasets and training.
+    reconstruction_scenes : tuple of str
+        Scenes with a per-scene denoiser (Tables 2, 3, 5, 6); the mixed model trains on all of them.
+    unseen_scene : str
+        A scene the mixed model never sees in training (the paper's "Pine", Table 3).
+    sweep_spp : tuple of int
+        Samples per pixel of the run-time-against-error sweep (our path tracer and Mitsuba).
+    sweep_width, sweep_height : int
+        Frame size of the sweep, pixels.
+    sweep_reference_spp : int
+        Mitsuba samples per pixel of the sweep's (and the combined pipeline's) reference.
+    combined_width, combined_height : int
+        Final frame size of the §6.4 pipeline (render at half size, denoise, superresolve 2x).
     """
 
     scenes: tuple[str, ...] = ()
@@ -99,11 +113,26 @@ class ProfileConfig:
     frame_height: int = 256
     frame_spp: int = 4
     seed: int = 20261122
+    reconstruction_profile: str = "quick"
+    reconstruction_scenes: tuple[str, ...] = ()
+    unseen_scene: str = ""
+    sweep_spp: tuple[int, ...] = (1, 2, 4, 8, 16, 32)
+    sweep_width: int = 128
+    sweep_height: int = 128
+    sweep_reference_spp: int = 1024
+    combined_width: int = 256
+    combined_height: int = 256
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "scenes", tuple(self.scenes))
-        if min(self.agreement_rays_per_kind, self.timing_rays, self.frame_width, self.frame_height, self.frame_spp) < 1:
-            raise ValueError("profile ray counts and frame sizes must be positive")
+        for name in ("scenes", "reconstruction_scenes", "sweep_spp"):
+            object.__setattr__(self, name, tuple(getattr(self, name)))
+        if min(self.agreement_rays_per_kind, self.timing_rays, self.frame_width, self.frame_height, self.frame_spp,
+               self.sweep_width, self.sweep_height, self.sweep_reference_spp, *self.sweep_spp) < 1:
+            raise ValueError("profile ray counts, spp and frame sizes must be positive")
+        if self.combined_width % 2 or self.combined_height % 2 or min(self.combined_width, self.combined_height) < 2:
+            raise ValueError("profile combined_width/height must be positive and even (2x superresolution)")
+        if self.unseen_scene and self.unseen_scene in self.reconstruction_scenes:
+            raise ValueError(f"profile unseen_scene {self.unseen_scene!r} must not be one of reconstruction_scenes")
 
 
 @dataclass(frozen=True)
