@@ -16,10 +16,20 @@ square crops are drawn from the views of each split.
 
 Storage: ``cache_root()/datasets/<scene>-<key>/`` with one ``view-NNNN.npz`` per view
 (written atomically, so an interrupted run leaves no partial file and a rerun renders
-only the missing views) and ``manifest.json`` (scene hash, settings, seeds, views,
-splits, provenance), written last. The folder key hashes the scene's content, the
-profile's dataset settings and :data:`RECIPE_VERSION`, so a changed scene or setting
-gets a new folder and an unchanged one is reused.
+only the missing views) and ``manifest.json`` (scene hash, settings, seeds, views with
+the worker and seconds of each, splits, provenance), written last. The folder key
+hashes the scene's content, the profile's dataset settings and :data:`RECIPE_VERSION`,
+so a changed scene or setting gets a new folder and an unchanged one is reused.
+
+**Units of work.** One view (noisy render with its auxiliary buffers, then the reference
+if the view is accepted) is one idempotent unit, :func:`make_view`; it runs in this
+process or, with ``scheduler``/``workers``/``client`` or ``$KDTRACE_SCHEDULER``, on Dask
+workers (:mod:`kdtrace.distributed`), which then need the dataset folder at the same
+path (shared storage on a cluster). Both give the same arrays bit for bit: the seeds
+depend only on the view, numba's image does not depend on its thread count, and the
+Mitsuba references are rendered on one Dr.Jit thread (its LLVM backend accumulates
+samples with atomics, so more threads change the last bits from run to run). An
+unwritable folder is a :class:`DatasetWriteError` before anything is rendered.
 
 **Superresolution data** (§5.2). Natural photographs bundled with scikit-image (no
 download) plus reference renders; each RGB crop (the target) is reduced 2x (``"area"``:
@@ -34,10 +44,14 @@ renders (test views).
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import math
+import os
 import re
+import tempfile
+import time
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -53,7 +67,7 @@ from kdtrace.cache import (
     load_npz,
     save_npz,
 )
-from kdtrace.config import DEFAULT_CONFIG, ReconstructionProfile
+from kdtrace.config import DEFAULT_CONFIG, DistributedConfig, ReconstructionProfile
 from kdtrace.provenance import stamp
 from kdtrace.scene import Camera, Scene
 
@@ -217,7 +231,56 @@ def _resolve(profile: str | ReconstructionProfile) -> ReconstructionProfile:
     return DEFAULT_CONFIG.reconstruction.profile(profile) if isinstance(profile, str) else profile
 
 
-def _render_view(scene: Scene, view: ViewSpec, profile: ReconstructionProfile) -> tuple[dict, dict]:
+def reference_variant(requested: str | None) -> str | None:
+    """The Mitsuba variant to ask :func:`references.mitsuba.render_reference` for.
+
+    Parameters
+    ----------
+    requested : str or None
+        ``None``/``""``: the usual choice (``llvm_ad_rgb`` when usable, else ``scalar_rgb``);
+        a supported variant: itself; another variant (e.g. ``cuda_ad_rgb`` on a GPU worker):
+        itself when :mod:`references.llvm` supports it and it renders here, else the usual
+        choice with a warning.
+
+    Returns
+    -------
+    str or None
+    """
+    from references.llvm import SUPPORTED_VARIANTS, probe_variant
+
+    if not requested or requested in SUPPORTED_VARIANTS:
+        return requested or None
+    works, reason = probe_variant(requested, None)
+    if not works:
+        warnings.warn(f"Mitsuba {requested} unusable on this worker ({reason}); using the default variant",
+                      stacklevel=2)
+        return None
+    warnings.warn(f"Mitsuba {requested} renders here but references.mitsuba supports only {SUPPORTED_VARIANTS}; "
+                  "using the default variant", stacklevel=2)
+    return None
+
+
+@contextlib.contextmanager
+def _one_jit_thread():
+    """Run Dr.Jit's CPU backend on one thread, then restore its thread count.
+
+    With more threads, Mitsuba's LLVM variant adds samples into the film with atomics in
+    a varying order, so two renders with the same seed differ in the last bits; on one
+    thread a reference is reproducible, and a dataset is the same in-process and on any
+    number of workers. The parallelism of a dataset comes from rendering views at once.
+    """
+    import drjit
+
+    previous = drjit.thread_count()
+    drjit.set_thread_count(1)
+    try:
+        yield
+    finally:
+        drjit.set_thread_count(previous)
+
+
+def _render_view(scene: Scene, view: ViewSpec, profile: ReconstructionProfile,
+                 variant: str | None = None) -> tuple[dict, dict]:
     """Render one view: (arrays, metadata); arrays are empty when the view is rejected."""
     from kdtrace.render import render
 
@@ -231,20 +294,128 @@ def _render_view(scene: Scene, view: ViewSpec, profile: ReconstructionProfile) -
     if not metadata["accepted"]:
         return {}, metadata
     if profile.reference == "mitsuba":
+        from references.llvm import activate_variant
         from references.mitsuba import render_reference
 
-        reference = render_reference(dataclasses.replace(scene, cameras=[view.camera]), spp=profile.reference_spp,
-                                     max_depth=profile.max_depth, seed=view.reference_seed,
-                                     width=profile.width, height=profile.height, cache=False)
-        metadata["reference_seconds"] = reference.seconds
+        variant = activate_variant(reference_variant(variant))  # before drjit is imported
+        with _one_jit_thread():
+            reference = render_reference(dataclasses.replace(scene, cameras=[view.camera]),
+                                         spp=profile.reference_spp, max_depth=profile.max_depth,
+                                         seed=view.reference_seed, width=profile.width, height=profile.height,
+                                         cache=False, variant=variant)
+        metadata["reference_variant"] = reference.variant
     else:
         reference = render(scene, spp=profile.reference_spp, max_depth=profile.max_depth,
                            seed=view.reference_seed, width=profile.width, height=profile.height, aux=False,
                            camera=view.camera)
-        metadata["reference_seconds"] = reference.seconds
+    metadata["reference_seconds"] = reference.seconds
     arrays = {"noisy": noisy.rgb, "albedo": noisy.albedo, "normal": noisy.normal,
               "depth": noisy.depth[..., None], "reference": reference.rgb}
     return {name: np.ascontiguousarray(value, np.float32) for name, value in arrays.items()}, metadata
+
+
+def _view_metadata(path: Path) -> dict[str, Any] | None:
+    """The metadata record of a view file, without reading its arrays; None when missing or unreadable."""
+    try:
+        with np.load(path) as stored:
+            return json.loads(stored["__metadata__"].tobytes().decode())
+    except (OSError, ValueError, KeyError, EOFError):
+        return None
+
+
+def make_view(scene: Scene, profile: ReconstructionProfile, index: int, root: str | Path, key: str,
+              variant: str | None = None) -> dict[str, Any]:
+    """Render one candidate view into ``root/view-NNNN.npz``, unless it is already there: a unit of work.
+
+    Idempotent: a file holding this dataset's ``key`` is kept and its record returned.
+    The file is written atomically, so concurrent or repeated calls (a retried unit, a
+    second client) leave one complete file; the arrays depend only on the seeds.
+
+    Parameters
+    ----------
+    scene : Scene
+    profile : ReconstructionProfile
+    index : int
+        Candidate index (see :func:`candidate_views`).
+    root : str or Path
+        Dataset folder (shared storage when the call runs on another machine).
+    key : str
+        :func:`dataset_key` of ``scene`` and ``profile``.
+    variant : str, optional
+        Mitsuba variant of the reference (see :func:`reference_variant`).
+
+    Returns
+    -------
+    dict
+        The view's record: name, camera, seeds, coverage, accepted, render seconds, and
+        ``worker`` / ``unit_seconds`` (who made the file and its wall time, seconds).
+    """
+    from kdtrace.distributed import worker_identity
+
+    path = Path(root) / f"view-{index:04d}.npz"
+    metadata = _view_metadata(path)
+    if metadata is not None and metadata.get("key") == key:
+        return metadata
+    view = candidate_views(scene, profile)[index]
+    started = time.perf_counter()
+    arrays, metadata = _render_view(scene, view, profile, variant)
+    metadata = {"key": key, "name": view.name, "index": view.index, "position": view.position,
+                "yaw": view.yaw, "yaw_degrees": view.yaw_degrees, "camera": dataclasses.asdict(view.camera),
+                "noisy_seed": view.noisy_seed, "reference_seed": view.reference_seed, **metadata,
+                "worker": worker_identity(), "unit_seconds": time.perf_counter() - started}
+    metadata = json.loads(json.dumps(metadata))
+    try:
+        save_npz(path, arrays, metadata)
+    except OSError as error:
+        raise DatasetWriteError(error.errno, f"cannot write {path}: {error.strerror or error}; nothing half-written "
+                                "was left") from error
+    return metadata
+
+
+class DatasetWriteError(OSError):
+    """The dataset folder cannot be written (read-only, full, not a folder)."""
+
+
+def check_writable(root: Path) -> None:
+    """Create ``root`` if needed and write and delete a probe file in it.
+
+    Raises
+    ------
+    DatasetWriteError
+        With the folder and the operating system's reason; nothing in ``root`` changed.
+    """
+    try:
+        root.mkdir(parents=True, exist_ok=True)
+        handle, probe = tempfile.mkstemp(dir=root, prefix=".write-probe.")
+        try:
+            os.write(handle, b"kdtrace")
+        finally:
+            os.close(handle)
+            Path(probe).unlink(missing_ok=True)
+    except OSError as error:
+        raise DatasetWriteError(error.errno, f"dataset folder {root} is not writable: {error.strerror or error}; "
+                                "the dataset was left as it was") from error
+
+
+def remove_stale_temporaries(root: Path, older_than: float) -> list[str]:
+    """Delete temporary files of atomic writes (``.view-*``, ``.manifest.*``) older than ``older_than`` seconds.
+
+    Such a file is left only by a process that died while writing; a live writer's
+    temporary exists for the duration of one ``np.savez``.
+
+    Returns
+    -------
+    list of str
+        Names removed.
+    """
+    removed = []
+    now = time.time()
+    for path in list(root.glob(".view-*")) + list(root.glob(".manifest.*")):
+        with contextlib.suppress(FileNotFoundError):
+            if now - path.stat().st_mtime > older_than:
+                path.unlink()
+                removed.append(path.name)
+    return removed
 
 
 def split_views(names: list[str], profile: ReconstructionProfile) -> dict[str, list[str]]:
@@ -270,7 +441,9 @@ def split_views(names: list[str], profile: ReconstructionProfile) -> dict[str, l
 
 
 def generate_dataset(scene: str | Scene, profile: str | ReconstructionProfile = "quick",
-                     progress: bool | None = None) -> Dataset:
+                     progress: bool | None = None, *, scheduler: str | None = None, workers: int | None = None,
+                     variant: str | None = None, client: Any = None,
+                     config: DistributedConfig | None = None) -> Dataset:
     """Generate (or reuse) the Precision Graphics dataset of one scene.
 
     Parameters
@@ -282,16 +455,38 @@ def generate_dataset(scene: str | Scene, profile: str | ReconstructionProfile = 
         A profile of ``[reconstruction.profiles]`` or a profile object.
     progress : bool, optional
         Show a tqdm bar (None: only on a terminal).
+    scheduler : str, optional
+        Render the views on Dask (:mod:`kdtrace.distributed`): a scheduler address, or
+        ``"local"`` for an embedded LocalCluster. Default: ``$KDTRACE_SCHEDULER`` when set,
+        else in this process (unless ``workers`` or ``client`` is given).
+    workers : int, optional
+        Worker processes of the embedded LocalCluster (0: one per core).
+    variant : str, optional
+        Mitsuba variant of the references (default ``[distributed] mitsuba_variant``).
+    client : distributed.Client, optional
+        An open Dask client to render on.
+    config : DistributedConfig, optional
+        Cluster, retry and clean-up settings (default ``[distributed]``).
 
     Returns
     -------
     Dataset
         Complete: every candidate view rendered or rejected, splits and manifest written.
 
+    Raises
+    ------
+    DatasetWriteError
+        The dataset folder cannot be written; nothing was changed.
+    kdtrace.distributed.UnitError
+        A view failed on a worker (after retries); finished views are kept.
+
     Notes
     -----
-    Resumable: views already on disk with this dataset's key are not rendered again; a
-    complete manifest makes the call a pure cache hit.
+    One view is one unit of work (:func:`make_view`): resumable and shareable, views
+    already on disk with this dataset's key are not rendered again, and a complete
+    manifest makes the call a pure cache hit. In-process and on Dask the arrays are
+    identical (same seeds). The manifest records per view the worker that rendered it
+    and its seconds.
     """
     from kdtrace.scenes import load_scene
 
@@ -307,22 +502,21 @@ def generate_dataset(scene: str | Scene, profile: str | ReconstructionProfile = 
             manifest = None
         if manifest is not None and manifest.get("key") == key:
             return Dataset(root, manifest)
-    records = []
+    check_writable(root)
+    settings = config or DEFAULT_CONFIG.distributed
+    variant = variant or settings.mitsuba_variant or None
     views = candidate_views(scene, profile)
-    disable = None if progress is None else not progress
-    for view in tqdm(views, desc=f"dataset {scene.name}", unit="view", disable=disable):
-        path = root / f"{view.name}.npz"
-        loaded = load_npz(path)
-        if loaded is not None and loaded[1].get("key") == key:
-            metadata = loaded[1]
-        else:
-            arrays, metadata = _render_view(scene, view, profile)
-            metadata = {"key": key, "name": view.name, "index": view.index, "position": view.position,
-                        "yaw": view.yaw, "yaw_degrees": view.yaw_degrees, "camera": dataclasses.asdict(view.camera),
-                        "noisy_seed": view.noisy_seed, "reference_seed": view.reference_seed, **metadata}
-            metadata = json.loads(json.dumps(metadata))
-            save_npz(path, arrays, metadata)
-        records.append({name: value for name, value in metadata.items() if name != "key"})
+    distributed = client is not None or workers is not None or bool(scheduler or os.environ.get("KDTRACE_SCHEDULER"))
+    if distributed:
+        records = _render_distributed(scene, profile, views, root, key, variant,
+                                      {"scheduler": scheduler, "client": client, "workers": workers,
+                                       "progress": progress, "config": settings})
+    else:
+        disable = None if progress is None else not progress
+        records = [make_view(scene, profile, view.index, root, key, variant)
+                   for view in tqdm(views, desc=f"dataset {scene.name}", unit="view", disable=disable)]
+    remove_stale_temporaries(root, settings.stale_temporary_seconds)
+    records = [{name: value for name, value in record.items() if name != "key"} for record in records]
     accepted = [record["name"] for record in records if record["accepted"]]
     manifest = {
         "key": key, "recipe_version": RECIPE_VERSION, "scene": scene.name, "scene_hash": scene.content_hash(),
@@ -333,6 +527,24 @@ def generate_dataset(scene: str | Scene, profile: str | ReconstructionProfile = 
     }
     atomic_write_bytes(manifest_path, json.dumps(manifest, indent=1).encode())
     return Dataset(root, manifest)
+
+
+def _render_distributed(scene: Scene, profile: ReconstructionProfile, views: list[ViewSpec], root: Path, key: str,
+                        variant: str | None, options: dict[str, Any]) -> list[dict[str, Any]]:
+    """Records of every view; the views not yet on disk are rendered as Dask units (``options``: of run_units)."""
+    from kdtrace.distributed import Unit, run_units
+
+    records: dict[int, dict[str, Any]] = {}
+    for view in views:
+        metadata = _view_metadata(root / f"{view.name}.npz")
+        if metadata is not None and metadata.get("key") == key:
+            records[view.index] = metadata
+    missing = [Unit(f"{root.name}-{view.name}", (profile, view.index, str(root), key, variant))
+               for view in views if view.index not in records]
+    for unit, result in zip(missing, run_units(missing, make_view, shared=scene, description=f"dataset {scene.name}",
+                                               **options)):
+        records[unit.args[1]] = result.value
+    return [records[view.index] for view in views]
 
 
 # ------------------------------------------------------------------ crops
@@ -416,20 +628,36 @@ def degrade(target: np.ndarray, method: str = "area") -> np.ndarray:
         path's bicubic) and clamped to [0, 1] as :func:`reconstruction.models.superresolve` does.
     """
     import torch
-    import torch.nn.functional as F
 
     from reconstruction.models import bicubic_upsample
 
     if target.ndim != 4 or target.shape[2] % 2 or target.shape[3] % 2:
         raise ValueError(f"target must be (N, C, H, W) with even H and W, got {target.shape}")
-    tensor = torch.from_numpy(np.ascontiguousarray(target, np.float32))
-    if method == "area":
-        small = F.avg_pool2d(tensor, 2)
-    elif method == "bicubic":
-        small = F.interpolate(tensor, scale_factor=0.5, mode="bicubic", align_corners=False, antialias=True)
-    else:
-        raise ValueError(f"unknown downsampling {method!r}; use 'area' or 'bicubic'")
+    small = halve(torch.from_numpy(np.ascontiguousarray(target, np.float32)), method)
     return bicubic_upsample(small, 2).clamp(0.0, 1.0).numpy()
+
+
+def halve(tensor: Any, method: str = "area") -> Any:
+    """2x downsampling of a float ``torch.Tensor`` (N, C, H, W), H and W even.
+
+    Parameters
+    ----------
+    tensor : torch.Tensor
+    method : {"area", "bicubic"}
+        2x2 box mean (what a half-resolution render with a box filter sees), or
+        antialiased bicubic (PyTorch).
+
+    Returns
+    -------
+    torch.Tensor, shape (N, C, H/2, W/2)
+    """
+    import torch.nn.functional as F
+
+    if method == "area":
+        return F.avg_pool2d(tensor, 2)
+    if method == "bicubic":
+        return F.interpolate(tensor, scale_factor=0.5, mode="bicubic", align_corners=False, antialias=True)
+    raise ValueError(f"unknown downsampling {method!r}; use 'area' or 'bicubic'")
 
 
 def _image_crops(image: np.ndarray, size: int, count: int, rng: np.random.Generator) -> list[np.ndarray]:

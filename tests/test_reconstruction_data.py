@@ -216,3 +216,11 @@ def test_user_config_adds_and_overrides_reconstruction_profiles(tmp_path):
         DEFAULT_CONFIG.reconstruction.profile("nope")
     with pytest.raises(ValueError, match="reference"):
         dataclasses.replace(QUICK, reference="blender")
+
+
+def test_an_unusable_mitsuba_variant_falls_back_with_a_warning():
+    assert data.reference_variant(None) is None and data.reference_variant("") is None
+    assert data.reference_variant("scalar_rgb") == "scalar_rgb"
+    # no GPU variant is supported by references.mitsuba yet, and this machine has no GPU either way
+    with pytest.warns(UserWarning, match="cuda_ad_rgb"):
+        assert data.reference_variant("cuda_ad_rgb") is None
