@@ -2,8 +2,8 @@
 
 Subcommands: ``scenes`` (list scene descriptions), ``build`` (build and cache the
 KD-trees of a scene, print their statistics), ``check-embree`` (hit-for-hit agreement
-with Embree), ``render`` (path trace to EXR and PNG), ``report`` (the main job: Table 1
-for a profile).
+with Embree), ``render`` (path trace to EXR and PNG), ``report`` (the main job: every
+report part of a profile), ``gate`` and ``update-baseline`` (the CI regression gate).
 """
 
 from __future__ import annotations
@@ -101,26 +101,63 @@ def _quality(args, config) -> int:
     return 0
 
 
+def _dataset(args, config) -> int:
+    from kdtrace.distributed import (
+        SchedulerUnreachableError,
+        UnitError,
+        VersionMismatchError,
+    )
+    from reconstruction.data import DatasetWriteError, generate_dataset
+
+    profile = config.reconstruction.profile(args.dataset_profile)
+    workers = config.distributed.workers if args.workers is None else args.workers
+    where = {} if args.in_process else {"scheduler": args.scheduler, "workers": workers}  # workers: use Dask
+    started = time.perf_counter()
+    try:
+        dataset = generate_dataset(args.scene, profile, progress=True, variant=args.mitsuba_variant,
+                                   config=config.distributed, **where)
+    except (SchedulerUnreachableError, VersionMismatchError, UnitError, DatasetWriteError) as error:
+        print(f"kdtrace: error: {error}", file=sys.stderr)
+        return 2
+    views = dataset.manifest["views"]
+    print(f"{dataset.manifest['scene']}: {sum(v['accepted'] for v in views)} of {len(views)} views accepted, "
+          f"{sum(v.get('unit_seconds', 0.0) for v in views):.0f} s of rendering by "
+          f"{len({v.get('worker') for v in views})} workers, {time.perf_counter() - started:.0f} s wall; {dataset.root}")
+    return 0
+
+
 def _report(args, config) -> int:
-    from reports import table1
+    from reports.main import run_report
 
-    profile = config.profile(args.profile)
     scenes = args.scenes.split(",") if args.scenes else None
-    if scenes:
-        from kdtrace.scenes import list_scenes
-
-        unknown = sorted(set(scenes) - set(list_scenes()))
-        if unknown:
-            raise ValueError(f"unknown scenes {unknown}; available: {', '.join(list_scenes())}")
+    parts = args.parts.split(",") if args.parts else None
     out_dir = Path(args.out) if args.out else REPOSITORY / "reports" / args.profile
     started = time.perf_counter()
-    table = table1.generate(config, args.profile, out_dir, scenes or list(profile.scenes), fresh=args.fresh)
-    print(table1.markdown_table(table))
-    print(f"\nwrote {out_dir}/table1.md, table1.csv, agreement.md, provenance.json in {time.perf_counter() - started:.0f} s")
-    unexplained = int(table["unexplained"].sum())
-    if unexplained:
-        print(f"FAIL: {unexplained} unexplained disagreements with Embree (see agreement.md)")
-        return 1
+    outcome = run_report(config, args.profile, out_dir, scenes=scenes, fresh=args.fresh, gate=args.gate, parts=parts)
+    print(f"\nwrote {out_dir}/README.md (index of every table and plot) and provenance.json; "
+          f"{time.perf_counter() - started:.0f} s in all")
+    for failure in outcome.correctness_failures:
+        print(f"FAIL: {failure}")
+    if outcome.gate_text:
+        print("\n" + outcome.gate_text)
+    return 0 if outcome.ok else 1
+
+
+def _gate(args, config) -> int:
+    from reports.gate import run_gate
+
+    out_dir = Path(args.out) if args.out else REPOSITORY / "reports" / args.profile
+    passed, text = run_gate(out_dir, args.profile, config.gate, baseline=args.baseline)
+    print(text)
+    return 0 if passed else 1
+
+
+def _update_baseline(args, config) -> int:
+    from reports.gate import update_baseline
+
+    out_dir = Path(args.out) if args.out else REPOSITORY / "reports" / args.profile
+    path, note = update_baseline(out_dir, args.profile, baseline=args.baseline)
+    print(f"{note}; review with `git diff {path}`")
     return 0
 
 
@@ -183,12 +220,35 @@ def build_parser() -> argparse.ArgumentParser:
     quality.add_argument("--out", default="reports/quality", help="folder for quality.md and quality.csv")
     quality.set_defaults(run=_quality)
 
-    report = sub.add_parser("report", help="the main job: regenerate Table 1 for a profile")
+    dataset = sub.add_parser("dataset", help="generate (or complete) a Precision Graphics dataset, on Dask workers")
+    dataset.add_argument("scene", help="scene name, .toml, .obj or .ply")
+    dataset.add_argument("--profile", dest="dataset_profile", default="quick",
+                         help="reconstruction profile (quick, paper)")
+    dataset.add_argument("--scheduler", help="address of a running Dask scheduler (default $KDTRACE_SCHEDULER, "
+                         "else a local cluster)")
+    dataset.add_argument("--workers", type=int, help="worker processes of the local cluster (default: one per core)")
+    dataset.add_argument("--mitsuba-variant", help="Mitsuba variant of the references, e.g. cuda_ad_rgb on GPU "
+                         "workers (falls back when unusable)")
+    dataset.add_argument("--in-process", action="store_true", help="render in this process, without Dask")
+    dataset.set_defaults(run=_dataset)
+
+    report = sub.add_parser("report", help="the main job: every report part of a profile, an index, optionally the gate")
     report.add_argument("--profile", default="quick", help="profile name from the configuration (quick, paper)")
     report.add_argument("--scenes", help="comma-separated subset of the profile's scenes")
+    report.add_argument("--parts", help="comma-separated report parts (default all: table1, agreement, "
+                        "reconstruction, error_time, combined)")
     report.add_argument("--out", help="output folder (default reports/PROFILE)")
-    report.add_argument("--fresh", action="store_true", help="measure every scene again instead of resuming")
+    report.add_argument("--fresh", action="store_true", help="measure everything again instead of reusing results")
+    report.add_argument("--gate", action="store_true", help="then compare with reports/baseline/PROFILE.json; exit 1 on a regression")
     report.set_defaults(run=_report)
+
+    for command, run, what in (("gate", _gate, "compare the latest run's metrics with the committed baseline"),
+                               ("update-baseline", _update_baseline, "rewrite the committed baseline from the latest run")):
+        parser_ = sub.add_parser(command, help=what)
+        parser_.add_argument("--profile", default="quick", help="profile name (selects reports/PROFILE and the baseline)")
+        parser_.add_argument("--out", help="report folder of the run (default reports/PROFILE)")
+        parser_.add_argument("--baseline", help="baseline file (default reports/baseline/PROFILE.json)")
+        parser_.set_defaults(run=run)
     return parser
 
 

@@ -282,14 +282,117 @@ class ReconstructionConfig:
 
 
 @dataclass(frozen=True)
+class GateConfig:
+    """Tolerances of the CI regression gate (:mod:`reports.gate`).
+
+    Attributes
+    ----------
+    ratio_tolerance : float
+        Largest allowed relative drop of a same-run speed ratio against the baseline
+        (0.35: fails below 65 % of the baseline value).
+    ratio_tolerances : dict of str -> float
+        Per-metric overrides of ``ratio_tolerance``: ``fnmatch`` pattern of the metric
+        name -> relative tolerance; the first matching pattern (in file order) wins.
+    psnr_tolerance_db : float
+        Largest allowed PSNR drop, dB.
+    """
+
+    ratio_tolerance: float = 0.35
+    ratio_tolerances: dict[str, float] = dataclasses.field(default_factory=dict)
+    psnr_tolerance_db: float = 0.1
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "ratio_tolerances", dict(self.ratio_tolerances))
+        for tolerance in (self.ratio_tolerance, *self.ratio_tolerances.values()):
+            if not 0.0 <= tolerance < 1.0:
+                raise ValueError(f"gate ratio tolerances must be in [0, 1), got {tolerance!r}")
+        if self.psnr_tolerance_db < 0.0:
+            raise ValueError("gate.psnr_tolerance_db must be >= 0")
+
+    def tolerance_for(self, name: str) -> float:
+        """Relative ratio tolerance of the metric ``name`` (first matching override, else the default)."""
+        import fnmatch
+
+        for pattern, tolerance in self.ratio_tolerances.items():
+            if fnmatch.fnmatchcase(name, pattern):
+                return tolerance
+        return self.ratio_tolerance
+
+
+@dataclass(frozen=True)
+class DistributedConfig:
+    """Units of work on a Dask cluster (:mod:`kdtrace.distributed`).
+
+    Attributes
+    ----------
+    scheduler : str
+        Address of an existing Dask scheduler (``tcp://host:8786``); empty: start an
+        embedded ``LocalCluster``. The environment variable ``KDTRACE_SCHEDULER`` overrides it.
+    workers : int
+        Worker processes of the embedded cluster; 0: ``cores // threads_per_worker``.
+    threads_per_worker : int
+        Compute threads of each worker (numba, PyTorch and Dr.Jit), so that workers x
+        threads = cores. Each worker runs one unit at a time.
+    connect_timeout : float
+        Seconds to wait for a scheduler before giving up with an error.
+    retries : int
+        Extra attempts of a unit that raised an exception (a unit whose worker died is
+        rescheduled by Dask regardless, up to ``distributed.scheduler.allowed-failures``).
+    dashboard_address : str
+        Where the embedded cluster serves its dashboard (``":0"``: any free port; empty: none).
+    mitsuba_variant : str
+        Mitsuba variant of the references (``"llvm_ad_rgb"``, ``"scalar_rgb"``, ``"cuda_ad_rgb"``);
+        empty: the usual choice (``llvm_ad_rgb`` when usable). Unusable variants fall back.
+    stale_temporary_seconds : float
+        A temporary file of an atomic write older than this (seconds) was left by a
+        process that died and is removed when a dataset is completed.
+    scaleout_views : int
+        Views generated per measurement of the 1- and 2-worker throughput (``reports/scaleout.py``).
+    calibration_size : int
+        Side of the square frames (pixels) timed to fit the per-view cost model of the projection.
+    calibration_spp : tuple of int
+        Two reference sample counts timed to fit that model (overhead + cost per sample).
+    projection_cores : tuple of int
+        Core counts for which the wall time of the ``paper`` datasets is projected.
+    """
+
+    scheduler: str = ""
+    workers: int = 0
+    threads_per_worker: int = 1
+    connect_timeout: float = 5.0
+    retries: int = 1
+    dashboard_address: str = ":0"
+    mitsuba_variant: str = ""
+    stale_temporary_seconds: float = 600.0
+    scaleout_views: int = 12
+    calibration_size: int = 96
+    calibration_spp: tuple[int, ...] = (16, 64)
+    projection_cores: tuple[int, ...] = (2, 64, 256)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "calibration_spp", tuple(self.calibration_spp))
+        object.__setattr__(self, "projection_cores", tuple(self.projection_cores))
+        if self.workers < 0 or self.threads_per_worker < 1 or self.retries < 0:
+            raise ValueError("distributed.workers >= 0, threads_per_worker >= 1 and retries >= 0")
+        if not (self.connect_timeout > 0 and self.stale_temporary_seconds > 0):
+            raise ValueError("distributed.connect_timeout and stale_temporary_seconds must be positive")
+        if self.scaleout_views < 3 or self.calibration_size < 8 or min(self.projection_cores, default=0) < 1:
+            raise ValueError("distributed.scaleout_views >= 3, calibration_size >= 8, projection_cores >= 1")
+        if len(self.calibration_spp) != 2 or not 0 < self.calibration_spp[0] < self.calibration_spp[1]:
+            raise ValueError("distributed.calibration_spp must be two increasing positive sample counts")
+
+
+@dataclass(frozen=True)
 class Config:
     """The whole resolved configuration."""
 
     kdtree: KDTreeConfig = KDTreeConfig()
     cache: CacheConfig = CacheConfig()
     embree_check: EmbreeCheckConfig = EmbreeCheckConfig()
+    gate: GateConfig = GateConfig()
     render: RenderConfig = RenderConfig()
     reconstruction: ReconstructionConfig = ReconstructionConfig()
+    distributed: DistributedConfig = DistributedConfig()
     profiles: dict[str, ProfileConfig] = dataclasses.field(default_factory=dict)
 
     def profile(self, name: str) -> ProfileConfig:
@@ -307,8 +410,10 @@ _SECTIONS = {
     "kdtree": KDTreeConfig,
     "cache": CacheConfig,
     "embree_check": EmbreeCheckConfig,
+    "gate": GateConfig,
     "render": RenderConfig,
     "reconstruction": ReconstructionConfig,
+    "distributed": DistributedConfig,
 }
 
 
