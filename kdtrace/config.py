@@ -101,9 +101,11 @@ class ProfileConfig:
     sweep_width, sweep_height : int
         Frame size of the sweep, pixels.
     sweep_reference_spp : int
-        Mitsuba samples per pixel of the sweep's (and the combined pipeline's) reference.
+        Mitsuba samples per pixel of the sweep's reference.
     combined_width, combined_height : int
         Final frame size of the §6.4 pipeline (render at half size, denoise, superresolve 2x).
+    combined_reference_spp : int
+        Mitsuba samples per pixel of the §6.4 pipeline's full-size reference.
     """
 
     scenes: tuple[str, ...] = ()
@@ -122,12 +124,14 @@ class ProfileConfig:
     sweep_reference_spp: int = 1024
     combined_width: int = 256
     combined_height: int = 256
+    combined_reference_spp: int = 256
 
     def __post_init__(self) -> None:
         for name in ("scenes", "reconstruction_scenes", "sweep_spp"):
             object.__setattr__(self, name, tuple(getattr(self, name)))
         if min(self.agreement_rays_per_kind, self.timing_rays, self.frame_width, self.frame_height, self.frame_spp,
-               self.sweep_width, self.sweep_height, self.sweep_reference_spp, *self.sweep_spp) < 1:
+               self.sweep_width, self.sweep_height, self.sweep_reference_spp, self.combined_reference_spp,
+               *self.sweep_spp) < 1:
             raise ValueError("profile ray counts, spp and frame sizes must be positive")
         if self.combined_width % 2 or self.combined_height % 2 or min(self.combined_width, self.combined_height) < 2:
             raise ValueError("profile combined_width/height must be positive and even (2x superresolution)")

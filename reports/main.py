@@ -47,6 +47,7 @@ PARTS = {
     "reconstruction": "reports.reconstruction_tables",
     "error_time": "reports.error_time",
     "combined": "reports.combined",
+    "scaleout": "reports.scaleout",
 }
 #: Files of the output folder that are bookkeeping rather than results (not linked from the index).
 BOOKKEEPING = ("README.md", "provenance.json", "gate.md")

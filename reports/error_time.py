@@ -1,0 +1,785 @@
+"""Run time against error (issue 5, section 2): our pipelines against brute-force Mitsuba.
+
+For each reconstruction scene of a profile, at ``sweep_width`` x ``sweep_height`` from the
+scene's default camera, the error of five methods against a Mitsuba reference of
+``sweep_reference_spp`` samples per pixel, as a function of wall-clock seconds:
+
+``kdtrace``
+    our path tracer alone (local-branch tree, no auxiliary buffers), at each ``sweep_spp``;
+``mitsuba``
+    Mitsuba 3's ``path`` integrator alone, at each ``sweep_spp`` (the scene converted and
+    loaded beforehand; one warm-up render at the same spp, so JIT compilation is never
+    timed; the render and the copy to NumPy are timed);
+``kdtrace+denoiser``
+    our path tracer (with albedo) + the scene's own denoiser (Precision Graphics);
+``kdtrace-half+denoiser+superres``
+    our path tracer at half resolution + the denoiser + 2x superresolution;
+``kdtrace+oidn``
+    our path tracer (with albedo and normal) + Open Image Denoise.
+
+Seconds of a pipeline = render + reconstruction, warm: our render time is the kernel's
+wall time (``RenderResult.seconds``: scene packing and kernel compilation excluded); a
+reconstruction step is timed after one warm-up call on the same input. Every timing is
+the shortest of :data:`TIMING_REPEATS` runs. Errors: relMSE on the HDR images and PSNR on
+the linear images clipped to [0, 1] (:mod:`reconstruction.metrics`; the superresolution
+output is itself clipped to [0, 1], so its relMSE includes the clipping of pixels
+brighter than 1).
+
+From the curves: an equal-time table (each method's error at common seconds,
+interpolated piecewise linearly in log-log for relMSE and in PSNR over log seconds,
+"—" outside a method's measured range), an equal-error table (the seconds each method
+needs to reach a threshold; "≤ s" when its fastest point already does, "not reached"
+when no measured point does — never extrapolated) and the headline speed-up of our
+pipeline over Mitsuba at equal error.
+
+Rows are measured per scene and cached in ``OUT_DIR/rows/error_time/SCENE.json`` with a
+content key; a rerun reuses them (and says so), ``fresh=True`` measures again.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import io
+import json
+import math
+import os
+import time
+import warnings
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+from tabulate import tabulate
+from tqdm import tqdm
+
+from kdtrace.cache import atomic_write_bytes, content_key
+from kdtrace.config import Config, ProfileConfig, ReconstructionProfile
+from kdtrace.provenance import stamp
+from reports.metrics import Metric, write_metrics
+from reports.paper_figures import ACCEPTABLE_PSNR
+
+#: Bump when what a row measures changes: cached rows become stale.
+ROW_VERSION = 2
+#: Every time is the shortest of this many runs.
+TIMING_REPEATS = 3
+#: The methods, in table order, with their labels.
+METHODS = {
+    "kdtrace": "ours, path tracer",
+    "mitsuba": "Mitsuba 3 path",
+    "kdtrace+denoiser": "ours + denoiser",
+    "kdtrace-half+denoiser+superres": "ours ½ res + denoiser + SR 2x",
+    "kdtrace+oidn": "ours + OIDN",
+}
+#: Our reconstruction pipelines, compared with brute-force Mitsuba in the headline.
+PIPELINES = ("kdtrace+denoiser", "kdtrace-half+denoiser+superres")
+#: PSNR thresholds (dB) of the equal-error table: the paper's acceptable 30 dB, and 35 dB.
+PSNR_THRESHOLDS = (ACCEPTABLE_PSNR, 35.0)
+#: relMSE thresholds of the equal-error table.
+RELMSE_THRESHOLDS = (1e-2, 1e-3)
+#: ε of relMSE (as :data:`reconstruction.metrics.RELMSE_EPSILON`).
+RELMSE_EPSILON = 0.01
+
+
+# ------------------------------------------------------------------ curves (pure logic)
+def _curve(seconds: Sequence[float], values: Sequence[float], log_values: bool) -> tuple[np.ndarray, np.ndarray]:
+    """Points sorted by seconds, in interpolation space (log seconds; log values if asked).
+
+    Points with equal seconds are averaged (in interpolation space), so the abscissa is
+    strictly increasing. Non-positive seconds, or non-positive values with
+    ``log_values``, raise ``ValueError``.
+    """
+    x = np.asarray(seconds, np.float64)
+    y = np.asarray(values, np.float64)
+    if x.shape != y.shape or x.ndim != 1 or x.size == 0:
+        raise ValueError(f"need matching non-empty 1-D seconds and values, got {x.shape} and {y.shape}")
+    if not (np.all(np.isfinite(x)) and np.all(x > 0)):
+        raise ValueError(f"seconds must be positive and finite, got {x.tolist()}")
+    if log_values and not np.all(y > 0):
+        raise ValueError(f"log interpolation needs positive values, got {y.tolist()}")
+    lx = np.log(x)
+    ly = np.log(y) if log_values else y
+    unique, inverse = np.unique(lx, return_inverse=True)
+    means = np.bincount(inverse, weights=ly) / np.bincount(inverse)
+    return unique, means
+
+
+def value_at_seconds(seconds: Sequence[float], values: Sequence[float], at: float, log_values: bool) -> float:
+    """A method's error at ``at`` seconds, interpolated between its measured points.
+
+    Parameters
+    ----------
+    seconds : sequence of float
+        Measured wall-clock seconds (any order).
+    values : sequence of float
+        Error at each point (relMSE, or PSNR in dB).
+    at : float
+        Seconds to read the curve at.
+    log_values : bool
+        Interpolate ``log(value)`` (relMSE: straight lines on log-log axes) instead of
+        the value itself (PSNR, already logarithmic), always against ``log(seconds)``.
+
+    Returns
+    -------
+    float
+        The interpolated value, or NaN when ``at`` lies outside the measured seconds
+        (never extrapolated).
+    """
+    x, y = _curve(seconds, values, log_values)
+    where = math.log(at)
+    if not x[0] - 1e-12 <= where <= x[-1] + 1e-12:
+        return math.nan
+    result = float(np.interp(where, x, y))
+    return math.exp(result) if log_values else result
+
+
+@dataclass(frozen=True)
+class Reach:
+    """When a method first reaches an error threshold.
+
+    Attributes
+    ----------
+    seconds : float or None
+        Interpolated seconds at the first crossing; the fastest point's seconds when
+        that point already meets the threshold; None when not reached.
+    kind : str
+        ``"exact"`` (interpolated crossing), ``"at most"`` (the fastest measured point
+        already meets it: the method may need less) or ``"not reached"``.
+    """
+
+    seconds: float | None
+    kind: str
+
+    def cell(self) -> str:
+        """Table cell: seconds, ``≤ seconds`` or ``not reached``."""
+        if self.kind == "not reached":
+            return "not reached"
+        return ("≤ " if self.kind == "at most" else "") + f"{self.seconds:.3g}"
+
+
+def seconds_to_reach(seconds: Sequence[float], values: Sequence[float], threshold: float,
+                     higher_is_better: bool) -> Reach:
+    """Seconds a method needs to reach ``threshold`` (first crossing along increasing seconds).
+
+    Parameters
+    ----------
+    seconds, values : sequence of float
+        The measured curve (values: PSNR in dB with ``higher_is_better``, relMSE without).
+    threshold : float
+        PSNR to reach or exceed, or relMSE to reach or go below.
+    higher_is_better : bool
+        True for PSNR (interpolated linearly over log seconds), False for relMSE
+        (interpolated in log-log).
+
+    Returns
+    -------
+    Reach
+        The crossing between the last point that misses and the first that meets the
+        threshold; curves need not be monotone (the first crossing counts).
+    """
+    log_values = not higher_is_better
+    x, y = _curve(seconds, values, log_values)
+    target = math.log(threshold) if log_values else threshold
+    meets = y >= target if higher_is_better else y <= target
+    if not meets.any():
+        return Reach(None, "not reached")
+    first = int(np.argmax(meets))
+    if first == 0:
+        return Reach(float(np.min(np.asarray(seconds, np.float64))), "at most")
+    x0, x1, y0, y1 = x[first - 1], x[first], y[first - 1], y[first]
+    fraction = (target - y0) / (y1 - y0)
+    return Reach(float(math.exp(x0 + fraction * (x1 - x0))), "exact")
+
+
+def speedup_cell(reference: Reach, ours: Reach, reference_max_seconds: float) -> str:
+    """How many times faster ours reaches a threshold than the reference, as a table cell.
+
+    Bounds are stated, never guessed: the reference not reaching it within its
+    measured range gives ``> max/ours``; ours reaching it already at its fastest point
+    gives a lower bound ``≥``; the reference reaching it at its fastest point gives an
+    upper bound ``≤``; both bounded the same way, or ours not reaching it, gives "—".
+    """
+    if ours.kind == "not reached":
+        return "—"
+    if reference.kind == "not reached":
+        return f"> {reference_max_seconds / ours.seconds:.3g}x"
+    ratio = reference.seconds / ours.seconds
+    if reference.kind == "exact" and ours.kind == "exact":
+        return f"{ratio:.3g}x"
+    if reference.kind == "exact":  # ours: at most its fastest seconds
+        return f"≥ {ratio:.3g}x"
+    if ours.kind == "exact":  # reference: at most its fastest seconds
+        return f"≤ {ratio:.3g}x"
+    return "—"
+
+
+def common_seconds(low: float, high: float) -> list[float]:
+    """Round seconds (1 and 3 times a power of ten) within ``[low, high]`` for the equal-time table."""
+    if not 0 < low <= high:
+        raise ValueError(f"need 0 < low <= high, got {low}, {high}")
+    grid = []
+    for exponent in range(math.floor(math.log10(low)) - 1, math.ceil(math.log10(high)) + 1):
+        for mantissa in (1.0, 3.0):
+            value = mantissa * 10.0**exponent
+            if low <= value <= high:
+                grid.append(float(f"{value:.12g}"))
+    return grid
+
+
+def equal_time_table(points: pd.DataFrame, grid: Sequence[float]) -> pd.DataFrame:
+    """Each method's PSNR and relMSE at the common seconds of ``grid`` (NaN outside its range).
+
+    Parameters
+    ----------
+    points : DataFrame
+        One scene's points: ``method``, ``seconds``, ``psnr``, ``relmse``.
+    grid : sequence of float
+        Seconds to read every curve at.
+
+    Returns
+    -------
+    DataFrame
+        Columns ``method``, ``seconds``, ``psnr``, ``relmse``.
+    """
+    rows = []
+    for method, group in points.groupby("method", sort=False):
+        for at in grid:
+            rows.append({"method": method, "seconds": at,
+                         "psnr": value_at_seconds(group["seconds"], group["psnr"], at, log_values=False),
+                         "relmse": value_at_seconds(group["seconds"], group["relmse"], at, log_values=True)})
+    return pd.DataFrame(rows, columns=["method", "seconds", "psnr", "relmse"])
+
+
+def equal_error_table(points: pd.DataFrame, psnr_thresholds: Sequence[float] = PSNR_THRESHOLDS,
+                      relmse_thresholds: Sequence[float] = RELMSE_THRESHOLDS) -> dict[str, dict[str, Reach]]:
+    """Per method, the :class:`Reach` of every threshold (keys ``"PSNR 30 dB"``, ``"relMSE 0.01"``)."""
+    table: dict[str, dict[str, Reach]] = {}
+    for method, group in points.groupby("method", sort=False):
+        cells = {}
+        for threshold in psnr_thresholds:
+            cells[f"PSNR {threshold:g} dB"] = seconds_to_reach(group["seconds"], group["psnr"], threshold, True)
+        for threshold in relmse_thresholds:
+            cells[f"relMSE {threshold:g}"] = seconds_to_reach(group["seconds"], group["relmse"], threshold, False)
+        table[method] = cells
+    return table
+
+
+def headline(points: pd.DataFrame, spp: int, pipeline: str, reference: str = "mitsuba") -> dict[str, Any]:
+    """Speed-up of ``pipeline`` at ``spp`` over ``reference`` at the same PSNR.
+
+    The pipeline's PSNR at ``spp`` is the target; the reference's seconds to reach it
+    come from :func:`seconds_to_reach` on its curve.
+
+    Returns
+    -------
+    dict
+        ``psnr`` and ``seconds`` of the pipeline point, the reference's :class:`Reach`,
+        and ``speedup`` (a table cell from :func:`speedup_cell`).
+    """
+    ours = points[(points["method"] == pipeline) & (points["spp"] == spp)]
+    if len(ours) != 1:
+        raise ValueError(f"need exactly one {pipeline} point at {spp} spp, found {len(ours)}")
+    ours = ours.iloc[0]
+    theirs = points[points["method"] == reference]
+    reach = seconds_to_reach(theirs["seconds"], theirs["psnr"], float(ours["psnr"]), higher_is_better=True)
+    cell = speedup_cell(reach, Reach(float(ours["seconds"]), "exact"), float(theirs["seconds"].max()))
+    return {"psnr": float(ours["psnr"]), "seconds": float(ours["seconds"]), "reference": reach, "speedup": cell}
+
+
+# ------------------------------------------------------------------ measuring
+def shortest(run: Callable[[], Any], repeats: int = TIMING_REPEATS, warmup: int = 1,
+             seconds_of: Callable[[Any], float] | None = None) -> tuple[Any, float]:
+    """Call ``run`` ``warmup`` times untimed, then ``repeats`` times; the last result and the shortest time.
+
+    Parameters
+    ----------
+    run : callable
+        No arguments.
+    repeats, warmup : int
+    seconds_of : callable, optional
+        Seconds of one result (e.g. ``RenderResult.seconds``, the kernel's own time);
+        default the wall time of the call, ``time.perf_counter``.
+
+    Returns
+    -------
+    (object, float)
+        The last result and the shortest time, seconds.
+    """
+    for _ in range(warmup):
+        run()
+    best, result = math.inf, None
+    for _ in range(repeats):
+        started = time.perf_counter()
+        result = run()
+        elapsed = time.perf_counter() - started
+        best = min(best, elapsed if seconds_of is None else seconds_of(result))
+    return result, best
+
+
+@dataclass
+class Reconstruction:
+    """The trained networks of one profile: a denoiser per scene and the superresolution net."""
+
+    denoisers: dict[str, Any]
+    superres: Any
+
+    @classmethod
+    def load(cls, scene_names: Sequence[str], profile: ReconstructionProfile, all_scenes: Sequence[str],
+             progress: bool = True) -> Reconstruction:
+        """Train (or reuse from the cache) the denoiser of each of ``scene_names`` and the SR net.
+
+        The superresolution net is trained on the photographs plus the renders of
+        ``all_scenes`` (the profile's reconstruction scenes), as for Table 5.
+        """
+        from reconstruction.train import train_denoiser, train_superres
+
+        denoisers = {name: train_denoiser([name], profile, progress=progress).model for name in scene_names}
+        superres = train_superres(profile, list(all_scenes), progress=progress).model
+        return cls(denoisers, superres)
+
+
+def denoise_frame(model, frame) -> np.ndarray:
+    """Our denoiser on a :class:`~kdtrace.render.RenderResult` with albedo (whole frame, float32)."""
+    from reconstruction.inference import denoise
+
+    return denoise(model, frame.rgb, frame.albedo)
+
+
+def superresolve_frame(model, denoised: np.ndarray) -> np.ndarray:
+    """2x superresolution of a denoised linear frame, clipped to [0, 1] first (the SR net's domain)."""
+    from reconstruction.models import superresolve
+
+    return superresolve(model, np.clip(denoised, 0.0, 1.0))
+
+
+def timed_reconstruction(steps: Sequence[Callable[[Any], Any]], frame: Any, repeats: int = TIMING_REPEATS) -> tuple[Any, list[float]]:
+    """Run a chain of reconstruction steps on ``frame``; each step warm and timed on its own input.
+
+    Returns
+    -------
+    (object, list of float)
+        The last step's output and the shortest seconds of each step.
+    """
+    seconds = []
+    current = frame
+    for step in steps:
+        current, elapsed = shortest(lambda step=step, value=current: step(value), repeats)
+        seconds.append(elapsed)
+    return current, seconds
+
+
+def errors(image: np.ndarray, reference: np.ndarray) -> dict[str, float]:
+    """``psnr`` (dB, clipped to [0, 1]) and ``relmse`` (HDR) of ``image`` against ``reference``."""
+    from reconstruction.metrics import psnr, relmse
+
+    return {"psnr": psnr(image, reference), "relmse": relmse(image, reference)}
+
+
+def reference_floor(reference) -> dict[str, float]:
+    """The reference's own noise: expected relMSE and the PSNR its variance alone would give.
+
+    Errors near these values measure the reference's noise, not the method's. PSNR is
+    computed on images clipped to [0, 1], so only pixels whose reference lies inside
+    (0, 1) count towards its noise (clipping hides the rest).
+    """
+    rgb = reference.rgb.astype(np.float64)
+    variance = reference.variance.astype(np.float64)
+    floor = float(np.mean(variance / (rgb * rgb + RELMSE_EPSILON)))
+    mse = float(np.mean(np.where((rgb > 0.0) & (rgb < 1.0), variance, 0.0)))
+    return {"relmse_floor": floor, "psnr_ceiling": math.inf if mse == 0 else -10.0 * math.log10(mse)}
+
+
+def mitsuba_seed(seed: int, spp: int) -> int:
+    """A 32-bit Mitsuba sampler seed of the sweep at ``spp`` (hashed: independent of the reference's passes)."""
+    return int(content_key("error-time-mitsuba", seed, spp)[:8], 16)
+
+
+class MitsubaTimer:
+    """Mitsuba's ``path`` integrator on one scene, converted once, rendered warm.
+
+    Parameters
+    ----------
+    scene : Scene
+    max_depth, width, height : int
+    """
+
+    def __init__(self, scene, max_depth: int, width: int, height: int) -> None:
+        from references.llvm import activate_variant
+
+        self.variant = activate_variant(None)  # llvm_ad_rgb, or scalar_rgb with a warning
+        import mitsuba as mi
+
+        from references.mitsuba import to_mitsuba
+
+        self._mi = mi
+        self.scene, _ = to_mitsuba(scene, max_depth, width, height, 1)
+        self.integrator = mi.load_dict({"type": "path", "max_depth": int(max_depth)})
+
+    def image(self, spp: int, seed: int) -> np.ndarray:
+        """One render: ``mi.render`` and the copy to NumPy (which forces evaluation), RGB float32 (H, W, 3)."""
+        return np.array(self._mi.render(self.scene, integrator=self.integrator, spp=int(spp), seed=int(seed)),
+                        dtype=np.float32)[..., :3]
+
+    def render(self, spp: int, seed: int) -> tuple[np.ndarray, float]:
+        """(RGB float32 image, shortest seconds) after one untimed warm-up render at the same spp."""
+        return shortest(lambda: self.image(spp, seed))
+
+    @property
+    def threads(self) -> int:
+        """Dr.Jit's worker threads."""
+        import drjit as dr
+
+        return int(dr.thread_count())
+
+
+def _point(method: str, spp: int, width: int, height: int, render_seconds: float,
+           reconstruction_seconds: Sequence[float], image: np.ndarray, reference: np.ndarray) -> dict[str, Any]:
+    return {"method": method, "spp": int(spp), "width": int(width), "height": int(height),
+            "paths": int(width * height * spp), "render_seconds": float(render_seconds),
+            "reconstruction_seconds": float(sum(reconstruction_seconds)),
+            "seconds": float(render_seconds + sum(reconstruction_seconds)), **errors(image, reference)}
+
+
+def measure_scene(name: str, config: Config, profile_name: str, models: Reconstruction,
+                  progress: tqdm | None = None) -> dict[str, Any]:
+    """Measure every method at every ``sweep_spp`` on one scene (see the module docstring).
+
+    Returns
+    -------
+    dict
+        ``scene``, ``triangles``, ``width``, ``height``, ``reference`` (spp, seconds,
+        variant, noise floor), ``points`` (one dict per method and spp: seconds split
+        into render and reconstruction, ``psnr``, ``relmse``), thread counts and warnings.
+    """
+    from kdtrace.kdtree import build_kdtree
+    from kdtrace.render import render
+    from kdtrace.scenes import load_scene
+    from reconstruction.baselines import oidn
+    from references.mitsuba import render_reference
+
+    profile = config.profile(profile_name)
+    recon = config.reconstruction.profile(profile.reconstruction_profile)
+    width, height, depth = profile.sweep_width, profile.sweep_height, recon.max_depth
+    if width % 2 or height % 2:
+        raise ValueError(f"sweep_width/height must be even for the half-resolution pipeline, got {width}x{height}")
+
+    def status(text: str) -> None:
+        if progress is not None:
+            progress.set_postfix_str(f"{name}: {text}")
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        scene = load_scene(name)
+        tree = build_kdtree(scene, "local", config.kdtree)
+        status(f"reference {profile.sweep_reference_spp} spp")
+        reference = render_reference(scene, profile.sweep_reference_spp, depth, profile.seed % 2**32, width, height)
+        mitsuba = MitsubaTimer(scene, depth, width, height)
+        denoiser, superres = models.denoisers[name], models.superres
+
+        def ours(spp: int, w: int, h: int, aux: bool):
+            return shortest(lambda: render(scene, spp=spp, max_depth=depth, seed=profile.seed, width=w, height=h,
+                                           aux=aux, tree=tree), warmup=0, seconds_of=lambda r: r.seconds)
+
+        points = []
+        for spp in profile.sweep_spp:
+            status(f"{spp} spp")
+            plain, seconds = ours(spp, width, height, aux=False)
+            points.append(_point("kdtrace", spp, width, height, seconds, [], plain.rgb, reference.rgb))
+            image, seconds = mitsuba.render(spp, mitsuba_seed(profile.seed, spp))
+            points.append(_point("mitsuba", spp, width, height, seconds, [], image, reference.rgb))
+
+            frame, seconds = ours(spp, width, height, aux=True)
+            denoised, steps = timed_reconstruction([lambda f: denoise_frame(denoiser, f)], frame)
+            points.append(_point("kdtrace+denoiser", spp, width, height, seconds, steps, denoised, reference.rgb))
+            image, steps = timed_reconstruction([lambda f: oidn(f.rgb, f.albedo, f.normal)], frame)
+            points.append(_point("kdtrace+oidn", spp, width, height, seconds, steps, image, reference.rgb))
+
+            half, seconds = ours(spp, width // 2, height // 2, aux=True)
+            image, steps = timed_reconstruction([lambda f: denoise_frame(denoiser, f),
+                                                 lambda d: superresolve_frame(superres, d)], half)
+            point = _point("kdtrace-half+denoiser+superres", spp, width, height, seconds, steps, image, reference.rgb)
+            point["paths"] = int(width // 2 * (height // 2) * spp)
+            points.append(point)
+    import torch
+
+    return {
+        "scene": name, "triangles": len(scene.triangles), "width": width, "height": height, "max_depth": depth,
+        "reference": {"spp": reference.spp, "seconds": reference.seconds, "variant": reference.variant,
+                      **reference_floor(reference)},
+        "mitsuba_variant": mitsuba.variant, "mitsuba_threads": mitsuba.threads, "torch_threads": torch.get_num_threads(),
+        "points": points, "warnings": sorted({str(w.message) for w in caught}),
+    }
+
+
+def scene_rows(kind: str, version: int, measure_scene: Callable[..., dict], config: Config, profile_name: str,
+               out_dir: Path, fresh: bool, progress: bool) -> list[dict]:
+    """Per-scene rows of a report over the profile's reconstruction scenes, reused when their key matches.
+
+    A row is cached in ``out_dir/rows/KIND/SCENE.json`` under a content key of the scene,
+    ``version``, :data:`TIMING_REPEATS`, the report and reconstruction profiles and the
+    KD-tree and render settings. A reused row is announced with the date it was
+    measured; each new row is written atomically as soon as it is measured, so an
+    interrupted run resumes at the next unfinished scene. The networks
+    (:class:`Reconstruction`) are trained or loaded only when some row must be measured.
+
+    Parameters
+    ----------
+    kind : str
+        Report name (folder of the rows, first part of the key).
+    version : int
+        The report's row version.
+    measure_scene : callable
+        ``measure_scene(name, config, profile_name, models, progress_bar) -> dict``.
+    config, profile_name, out_dir, fresh, progress
+        As for :func:`generate`.
+
+    Returns
+    -------
+    list of dict
+        One row per scene, in the profile's order.
+    """
+    profile = config.profile(profile_name)
+    recon = config.reconstruction.profile(profile.reconstruction_profile)
+    names = list(profile.reconstruction_scenes)
+    settings = [dataclasses.asdict(profile), dataclasses.asdict(recon), dataclasses.asdict(config.kdtree),
+                dataclasses.asdict(config.render)]
+    models: list[Reconstruction] = []
+    rows = []
+    bar = tqdm(names, unit="scene", desc=f"{kind} ({profile_name})", disable=not progress)
+    for name in bar:
+        path = out_dir / "rows" / kind / f"{name}.json"
+        key = content_key(f"{kind}-row", version, name, TIMING_REPEATS, settings)
+        if not fresh and path.exists():
+            saved = json.loads(path.read_text())
+            if saved.get("key") == key:
+                bar.write(f"{kind} {name}: reusing the row measured {saved['measured_at']} (pass fresh=True to measure again)")
+                rows.append(saved["row"])
+                continue
+        if not models:
+            bar.set_postfix_str("reconstruction networks")
+            models.append(Reconstruction.load(names, recon, names, progress))
+        load_before = os.getloadavg()[0]
+        row = measure_scene(name, config, profile_name, models[0], bar)
+        row["load_average"] = [load_before, os.getloadavg()[0]]
+        record = {"key": key, "measured_at": time.strftime("%Y-%m-%d %H:%M:%S"), "row": row}
+        atomic_write_bytes(path, json.dumps(record, indent=1).encode())
+        rows.append(row)
+    return rows
+
+
+def generate(config: Config, profile_name: str, out_dir: str | Path, fresh: bool = False,
+             progress: bool = True) -> list[Metric]:
+    """Measure (or reuse) the run-time-against-error sweep and write its report.
+
+    Parameters
+    ----------
+    config : Config
+        Resolved configuration.
+    profile_name : str
+        Report profile (its ``reconstruction_scenes`` and ``sweep_*`` fields).
+    out_dir : str or Path
+        Writes ``error_time.md``, ``error_time.csv``, ``error_time/SCENE.png``,
+        ``error_time.provenance.json`` and ``metrics/error_time.json``; rows in
+        ``rows/error_time/``.
+    fresh : bool
+        Measure every scene again instead of reusing cached rows.
+    progress : bool
+        tqdm progress bars.
+
+    Returns
+    -------
+    list of Metric
+        Per scene: ``error_time/SCENE/kdtrace_over_mitsuba_paths_per_second`` (ratio, our
+        path tracer over Mitsuba at the largest sweep spp, same run) and
+        ``error_time/SCENE/denoiser_psnr_Nspp`` (psnr, ours + denoiser at the denoiser's
+        training spp, fixed seeds).
+    """
+    out_dir = Path(out_dir)
+    rows = scene_rows("error_time", ROW_VERSION, measure_scene, config, profile_name, out_dir, fresh, progress)
+    metrics = write_outputs(rows, config, profile_name, out_dir)
+    write_metrics(out_dir, "error_time", metrics)
+    return metrics
+
+
+# ------------------------------------------------------------------ outputs
+def load_note(rows: Sequence[dict]) -> str:
+    """A sentence on the machine's 1-minute load average around the measurements (rows that recorded it)."""
+    loads = [value for row in rows for value in row.get("load_average", [])]
+    if not loads:
+        return ""
+    return (f"1-minute load average before/after each scene's measurements: {min(loads):.1f}–{max(loads):.1f} on "
+            f"{os.cpu_count()} cores (above the core count, other processes competed for the CPU and times are "
+            "inflated, the networks' multi-threaded torch times most). ")
+
+
+def points_frame(rows: Sequence[dict]) -> pd.DataFrame:
+    """All measured points of all scenes as one long table (the CSV)."""
+    return pd.DataFrame([{"scene": row["scene"], **point} for row in rows for point in row["points"]])
+
+
+def scene_metrics(row: dict, profile: ProfileConfig, recon: ReconstructionProfile) -> list[Metric]:
+    """The gated metrics of one scene's row (see :func:`generate`)."""
+    points = pd.DataFrame(row["points"])
+    name, spp = row["scene"], max(profile.sweep_spp)
+    rate = {method: float(points[(points["method"] == method) & (points["spp"] == spp)]["seconds"].iloc[0])
+            for method in ("kdtrace", "mitsuba")}
+    metrics = [Metric(f"error_time/{name}/kdtrace_over_mitsuba_paths_per_second", "ratio", rate["mitsuba"] / rate["kdtrace"],
+                      f"paths/s of our path tracer over Mitsuba path ({row['mitsuba_variant']}), {row['width']}x"
+                      f"{row['height']} {spp} spp, same run")]
+    denoised = points[(points["method"] == "kdtrace+denoiser") & (points["spp"] == recon.spp)]
+    if len(denoised):
+        metrics.append(Metric(f"error_time/{name}/denoiser_psnr_{recon.spp}spp", "psnr", float(denoised["psnr"].iloc[0]),
+                              f"dB, ours + per-scene denoiser at {recon.spp} spp vs Mitsuba {row['reference']['spp']} spp"))
+    return metrics
+
+
+def _format(value: float, digits: str) -> str:
+    return "—" if value is None or not math.isfinite(value) else format(value, digits)
+
+
+def plot_scene(row: dict, path: Path) -> Path:
+    """relMSE and PSNR against seconds (log x; log-log for relMSE) of one scene, as a PNG (Agg)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    points = pd.DataFrame(row["points"])
+    figure, (left, right) = plt.subplots(1, 2, figsize=(11, 4.2), constrained_layout=True)
+    for method, label in METHODS.items():
+        group = points[points["method"] == method].sort_values("spp")
+        style = "-o" if method in PIPELINES else "--s" if method == "mitsuba" else "-^"
+        left.loglog(group["seconds"], group["relmse"], style, label=label, markersize=4)
+        right.semilogx(group["seconds"], group["psnr"], style, label=label, markersize=4)
+        for axis, column in ((left, "relmse"), (right, "psnr")):
+            first = group.iloc[0]
+            axis.annotate(f"{first['spp']}", (first["seconds"], first[column]), fontsize=7, xytext=(3, 3),
+                          textcoords="offset points")
+    floor = row["reference"]
+    left.axhline(floor["relmse_floor"], color="grey", linewidth=0.8, linestyle=":", label="reference noise")
+    if math.isfinite(floor["psnr_ceiling"]):
+        right.axhline(floor["psnr_ceiling"], color="grey", linewidth=0.8, linestyle=":", label="reference noise")
+    for threshold in PSNR_THRESHOLDS:
+        right.axhline(threshold, color="black", linewidth=0.5, alpha=0.4)
+    left.set(xlabel="seconds (render + reconstruction)", ylabel="relMSE (HDR)", title=f"{row['scene']}: relMSE")
+    right.set(xlabel="seconds (render + reconstruction)", ylabel="PSNR (dB, [0,1] clipped)", title=f"{row['scene']}: PSNR")
+    for axis in (left, right):
+        axis.grid(True, which="both", alpha=0.3)
+    right.legend(fontsize=7, loc="lower right")
+    buffer = io.BytesIO()
+    figure.savefig(buffer, format="png", dpi=110)
+    plt.close(figure)
+    return atomic_write_bytes(path, buffer.getvalue())
+
+
+def scene_markdown(row: dict, recon: ReconstructionProfile) -> str:
+    """One scene's section: plot link, headline, equal-error and equal-time tables."""
+    points = pd.DataFrame(row["points"])
+    name = row["scene"]
+    reference = row["reference"]
+    about = (f"{row['triangles']:,} triangles, {row['width']}x{row['height']}; reference: Mitsuba {reference['spp']} spp "
+             f"({reference['variant']}), whose own noise gives relMSE ≈ {reference['relmse_floor']:.2g} and "
+             f"PSNR ≈ {reference['psnr_ceiling']:.1f} dB (errors near these measure the reference).")
+    lines = [f"## {name}", "", f"![{name}: error against seconds](error_time/{name}.png)", "", about, ""]
+    reach = equal_error_table(points)
+    mitsuba_max = float(points[points["method"] == "mitsuba"]["seconds"].max())
+    header = ["method", *next(iter(reach.values())).keys()]
+    body = [[METHODS[method], *(cell.cell() for cell in cells.values())] for method, cells in reach.items()]
+    for pipeline in (*PIPELINES, "kdtrace+oidn"):
+        body.append([f"speed-up of {METHODS[pipeline]} over Mitsuba",
+                     *(speedup_cell(reach["mitsuba"][key], reach[pipeline][key], mitsuba_max) for key in header[1:])])
+    lines += ["Equal error: seconds to reach each threshold.", "", tabulate(body, headers=header, tablefmt="github"), ""]
+    grid = common_seconds(float(points["seconds"].min()), float(points["seconds"].max()))
+    if grid:
+        table = equal_time_table(points, grid)
+        body = []
+        for method, label in METHODS.items():
+            part = table[table["method"] == method]
+            body.append([label, *(f"{_format(p, '.1f')} / {_format(r, '.2g')}"
+                                            for p, r in zip(part["psnr"], part["relmse"]))])
+        lines += ["Equal time: PSNR dB / relMSE at common seconds (interpolated; — outside the measured range).", "",
+                  tabulate(body, headers=["method", *(f"{s:g} s" for s in grid)], tablefmt="github"), ""]
+    return "\n".join(lines)
+
+
+def headline_table(rows: Sequence[dict], recon: ReconstructionProfile) -> str:
+    """Per scene and pipeline: its PSNR and seconds at the denoiser's spp, and Mitsuba's seconds to match it."""
+    body = []
+    for row in rows:
+        points = pd.DataFrame(row["points"])
+        for pipeline in PIPELINES:
+            if not ((points["method"] == pipeline) & (points["spp"] == recon.spp)).any():
+                continue
+            result = headline(points, recon.spp, pipeline)
+            body.append([row["scene"], METHODS[pipeline], f"{result['psnr']:.2f}", f"{result['seconds']:.3g}",
+                         result["reference"].cell(), result["speedup"]])
+    return tabulate(body, headers=["scene", f"pipeline at {recon.spp} spp", "PSNR dB", "seconds",
+                                   "Mitsuba seconds to the same PSNR", "speed-up"], tablefmt="github")
+
+
+def write_outputs(rows: Sequence[dict], config: Config, profile_name: str, out_dir: Path) -> list[Metric]:
+    """Write the Markdown, CSV, plots and provenance (each atomically); return the gated metrics."""
+    profile = config.profile(profile_name)
+    recon = config.reconstruction.profile(profile.reconstruction_profile)
+    provenance = stamp(config.to_dict(), profile=profile_name, seed=profile.seed)
+    machine = provenance["machine"]
+    for row in rows:
+        plot_scene(row, out_dir / "error_time" / f"{row['scene']}.png")
+    threads = rows[0] if rows else {}
+    warned = sorted({w for row in rows for w in row["warnings"]})
+    header = (
+        f"# Run time against error ({profile_name} profile)\n\n"
+        f"Machine: {machine['cpu']}, {machine['cores']} cores; {machine['numba_threads']} numba threads, "
+        f"{threads.get('torch_threads', '?')} torch threads, {threads.get('mitsuba_threads', '?')} Dr.Jit threads "
+        f"(Mitsuba {threads.get('mitsuba_variant', '?')}); OIDN picks its own thread count; {machine['date']}. "
+        f"Frames {profile.sweep_width}x{profile.sweep_height} from each scene's camera, max_depth {recon.max_depth}, "
+        f"spp {', '.join(map(str, profile.sweep_spp))}; reference Mitsuba {profile.sweep_reference_spp} spp. "
+        f"Networks: reconstruction profile `{profile.reconstruction_profile}` (per-scene denoiser trained on "
+        f"{recon.spp} spp inputs at {recon.width}x{recon.height}). Seed {profile.seed}.\n\n"
+        "Seconds of a pipeline = render + reconstruction, warm: our render is the kernel's wall time (no scene "
+        "packing, no compilation); Mitsuba's is `mi.render` plus the copy to NumPy with the scene already loaded, "
+        "after one untimed warm-up render at the same spp; every reconstruction step is timed after a warm-up call. "
+        f"Each time is the shortest of {TIMING_REPEATS} runs. {load_note(rows)}Absolute seconds depend on the machine; compare methods "
+        "within this table only. PSNR on linear images clipped to [0, 1]; relMSE on HDR images "
+        "(the superresolution output is clipped to [0, 1], so its relMSE includes clipping of bright pixels). "
+        "Between measured points curves are interpolated (log-log for relMSE, PSNR over log seconds); outside them "
+        "nothing is extrapolated: `≤ s` means the fastest measured point already meets the threshold, "
+        "`not reached` that no measured point does.\n\n"
+        + (f"Warnings during the run: {'; '.join(warned)}\n\n" if warned else "")
+    )
+    text = (header + f"## Headline: speed-up over brute-force Mitsuba at equal PSNR\n\n"
+            f"Each pipeline at {recon.spp} spp (the denoiser's training spp, the paper's operating point) against the "
+            f"seconds Mitsuba needs to reach the same PSNR on its measured curve.\n\n" + headline_table(rows, recon)
+            + "\n\n" + "\n\n".join(scene_markdown(row, recon) for row in rows) + "\n")
+    atomic_write_bytes(out_dir / "error_time.md", text.encode())
+    atomic_write_bytes(out_dir / "error_time.csv", points_frame(rows).to_csv(index=False).encode())
+    atomic_write_bytes(out_dir / "error_time.provenance.json", json.dumps(provenance, indent=1, default=str).encode())
+    return [metric for row in rows for metric in scene_metrics(row, profile, recon)]
+
+
+def run_cli(generate_report: Callable[..., list[Metric]], description: str, argv: Sequence[str] | None) -> int:
+    """Command line of a report generator: ``--profile`` (quick), ``--out`` (reports/PROFILE), ``--config``, ``--fresh``."""
+    from kdtrace.config import load_config
+
+    parser = argparse.ArgumentParser(description=description)
+    parser.add_argument("--profile", default="quick")
+    parser.add_argument("--out", help="output folder (default reports/PROFILE)")
+    parser.add_argument("--config", help="TOML file overriding kdtrace/defaults.toml")
+    parser.add_argument("--fresh", action="store_true", help="measure every scene again")
+    args = parser.parse_args(argv)
+    out = Path(args.out) if args.out else Path(__file__).parent / args.profile
+    for metric in generate_report(load_config(args.config), args.profile, out, fresh=args.fresh):
+        print(f"{metric.name} = {metric.value:.4g} ({metric.kind})")
+    return 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """``python -m reports.error_time [--profile quick] [--out DIR] [--fresh] [--config FILE]``."""
+    return run_cli(generate, __doc__.splitlines()[0], argv)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
