@@ -6,9 +6,11 @@ seen in training or model selection):
 * **denoising** — the noisy input, our denoiser and Intel Open Image Denoise
   (:func:`reconstruction.baselines.oidn`, with albedo and normal), each against the
   reference render;
-* **superresolution 2×** — bicubic (the net's own input, :func:`reconstruction.data.degrade`
-  with the profile's ``superres_downsample``) and our Y-channel net, each against the
-  reference clipped to [0, 1].
+* **superresolution 2×** — each reference clipped to [0, 1] is reduced 2x
+  (:func:`downsample_2x`, the profile's ``superres_downsample``) and upsampled back by
+  bicubic (the net's own input), Lanczos-3 and our Y-channel net
+  (:func:`superres_images`); the same on whole photographs, among them the held-out
+  photo test set :data:`TEST_PHOTOS`.
 
 Metrics are **pooled over the split**: RMSE is the root of the mean squared error over
 every pixel and channel of every test view (linear values clipped to [0, 1], the
@@ -93,9 +95,11 @@ def denoise_view(model: nn.Module, view: dict[str, np.ndarray], auxiliary: tuple
     return output[0].permute(1, 2, 0).numpy()
 
 
-def denoiser_quality(model: nn.Module, dataset, split: str = "test", auxiliary: tuple[str, ...] = ("albedo",),
+def denoiser_quality(model: nn.Module, dataset, split: str | None = "test", auxiliary: tuple[str, ...] = ("albedo",),
                      with_oidn: bool = True) -> dict[str, dict[str, float]]:
     """Pooled metrics of noisy input, ``model`` and (optionally) OIDN on the views of one split.
+
+    ``split=None`` takes every view (e.g. a scene the model never saw).
 
     Returns
     -------
@@ -116,40 +120,112 @@ def denoiser_quality(model: nn.Module, dataset, split: str = "test", auxiliary: 
     return {method: pooled(images, references) for method, images in outputs.items()}
 
 
-def superres_quality(model: nn.Module, dataset, split: str = "test", downsample: str = "area") -> dict[str, dict[str, float]]:
-    """Pooled metrics of bicubic and ``model`` 2× upsampling of the references of one split.
+#: Photographs held out from superresolution training and validation (the photo test set,
+#: Table 5), bundled with scikit-image (no download): the left view of the Middlebury
+#: motorcycle stereo pair and the Hubble deep field. Chosen for being the remaining
+#: bundled colour photographs, before any model was evaluated on them.
+TEST_PHOTOS = ("motorcycle_left", "hubble_deep_field")
 
-    Each reference (clipped to [0, 1]) is reduced 2× (``downsample``) and upsampled back
-    bicubically (:func:`reconstruction.data.degrade`, the net's input); ours replaces the
-    Y channel by the net's output and keeps bicubic Cb, Cr (as
-    :func:`reconstruction.models.superresolve`).
+
+def held_out_photo(name: str) -> np.ndarray:
+    """One photograph of :data:`TEST_PHOTOS` as linear RGB float32 (H, W, 3) in [0, 1]."""
+    from reconstruction.data import photo, srgb_to_linear
+
+    if name not in TEST_PHOTOS:
+        raise ValueError(f"unknown test photo {name!r}; known: {', '.join(TEST_PHOTOS)}")
+    if name == "motorcycle_left":
+        import skimage.data
+
+        return srgb_to_linear(skimage.data.stereo_motorcycle()[0][..., :3] / 255.0)
+    return photo(name)
+
+
+def downsample_2x(image: np.ndarray, method: str = "area") -> np.ndarray:
+    """The half-resolution image the superresolution net is given, (H, W, 3) -> (H/2, W/2, 3).
+
+    ``"area"``: 2x2 box mean; ``"bicubic"``: antialiased bicubic (the two reductions of
+    :func:`reconstruction.data.degrade`). H and W must be even.
+    """
+    import torch.nn.functional as F
+
+    image = np.asarray(image, np.float32)
+    if image.ndim != 3 or image.shape[0] % 2 or image.shape[1] % 2:
+        raise ValueError(f"image must be (H, W, C) with even H and W, got {image.shape}")
+    tensor = torch.from_numpy(np.ascontiguousarray(image.transpose(2, 0, 1)))[None]
+    if method == "area":
+        small = F.avg_pool2d(tensor, 2)
+    elif method == "bicubic":
+        small = F.interpolate(tensor, scale_factor=0.5, mode="bicubic", align_corners=False, antialias=True)
+    else:
+        raise ValueError(f"unknown downsampling {method!r}; use 'area' or 'bicubic'")
+    return small[0].permute(1, 2, 0).numpy().copy()
+
+
+def superres_images(model: nn.Module, targets: Sequence[np.ndarray], downsample: str = "area",
+                    with_lanczos: bool = True) -> dict[str, dict[str, float]]:
+    """Pooled metrics of bicubic, Lanczos and ``model`` 2x upsampling of ``targets``.
+
+    Each target (linear RGB, clipped to [0, 1], trimmed to even sides) is reduced 2x
+    (:func:`downsample_2x`) and upsampled back: bicubic
+    (:func:`reconstruction.baselines.bicubic`, the net's own input), Lanczos-3
+    (:func:`reconstruction.baselines.lanczos`) and ours
+    (:func:`reconstruction.models.superresolve`: the net refines Y, Cb and Cr stay bicubic).
+
+    Parameters
+    ----------
+    model : nn.Module
+        The superresolution net.
+    targets : sequence of ndarray
+        (H, W, 3) images of any sizes (at least 2x2).
+    downsample : {"area", "bicubic"}
+    with_lanczos : bool
 
     Returns
     -------
     dict
-        ``"bicubic"`` and ``"ours"`` -> :func:`pooled` metrics (RGB).
+        ``"bicubic"``, ``"lanczos"`` (if asked) and ``"ours"`` -> :func:`pooled` metrics.
     """
-    from reconstruction.data import degrade
-    from reconstruction.models import rgb_from_ycbcr, ycbcr_from_rgb
+    from reconstruction.baselines import bicubic, lanczos
+    from reconstruction.models import superresolve
 
-    names = dataset.views(split)
-    targets = np.stack([np.clip(dataset.load_view(name)["reference"], 0.0, 1.0).transpose(2, 0, 1) for name in names])
-    if targets.shape[2] % 2 or targets.shape[3] % 2:  # degrade needs even sides
-        targets = targets[:, :, : targets.shape[2] // 2 * 2, : targets.shape[3] // 2 * 2]
-    bicubic = torch.from_numpy(degrade(np.ascontiguousarray(targets, np.float32), downsample))
+    methods = {"bicubic": bicubic, **({"lanczos": lanczos} if with_lanczos else {}),
+               "ours": lambda low: superresolve(model, low)}
+    outputs: dict[str, list[np.ndarray]] = {name: [] for name in methods}
+    references = []
     was_training = model.training
     model.eval()
-    with torch.no_grad():
-        ycbcr = ycbcr_from_rgb(bicubic, channel_axis=-3)
-        ours = rgb_from_ycbcr(torch.cat([model(ycbcr[:, :1]), ycbcr[:, 1:]], dim=1), channel_axis=-3).clamp(0, 1)
+    for target in targets:
+        target = np.clip(np.asarray(target, np.float32), 0.0, 1.0)
+        target = target[: target.shape[0] // 2 * 2, : target.shape[1] // 2 * 2]
+        low = np.clip(downsample_2x(target, downsample), 0.0, 1.0)
+        references.append(target)
+        for name, upsample in methods.items():
+            outputs[name].append(upsample(low))
     model.train(was_training)
-    return {"bicubic": pooled(_images(bicubic.numpy()), _images(targets)),
-            "ours": pooled(_images(ours.numpy()), _images(targets))}
+    return {name: pooled(images, references) for name, images in outputs.items()}
 
 
-def _images(batch: np.ndarray) -> list[np.ndarray]:
-    """(N, C, H, W) -> list of (H, W, C)."""
-    return [image.transpose(1, 2, 0) for image in np.asarray(batch)]
+def superres_quality(model: nn.Module, dataset, split: str | None = "test", downsample: str = "area",
+                     with_lanczos: bool = True) -> dict[str, dict[str, float]]:
+    """:func:`superres_images` on the references of the views of one split (None: all views)."""
+    return superres_images(model, [dataset.load_view(name)["reference"] for name in dataset.views(split)],
+                           downsample, with_lanczos)
+
+
+def combine(results: Sequence[dict[str, float]]) -> dict[str, float]:
+    """Pool several :func:`pooled` results (of disjoint image sets) into one.
+
+    RMSE is recombined from the squared errors (``rmse**2 * pixels``), so the result is
+    exactly :func:`pooled` over the union; ``psnr_mean`` is the image-weighted mean.
+    """
+    if not results:
+        raise ValueError("nothing to combine")
+    pixels = sum(r["pixels"] for r in results)
+    images = sum(r["images"] for r in results)
+    rmse = math.sqrt(sum(r["rmse"] ** 2 * r["pixels"] for r in results) / pixels)
+    return {"psnr": math.inf if rmse == 0 else -20.0 * math.log10(rmse), "rmse": rmse,
+            "psnr_mean": sum(r["psnr_mean"] * r["images"] for r in results) / images,
+            "images": images, "pixels": pixels}
 
 
 def quality_rows(scene: str, denoising: dict[str, dict[str, float]] | None,

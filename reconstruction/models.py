@@ -247,7 +247,7 @@ def bicubic_upsample(x: torch.Tensor, factor: int = 2) -> torch.Tensor:
     return F.interpolate(x, scale_factor=factor, mode="bicubic", align_corners=False)
 
 
-def superresolve(model: Superresolution, low_res_rgb: np.ndarray) -> np.ndarray:
+def superresolve(model: Superresolution, low_res_rgb: np.ndarray, runner=None) -> np.ndarray:
     """2× superresolution of an RGB image in [0, 1], end to end (§5.1).
 
     Bicubic 2× upsampling (:func:`bicubic_upsample`), clamped to [0, 1]; BT.601 YCbCr;
@@ -259,6 +259,9 @@ def superresolve(model: Superresolution, low_res_rgb: np.ndarray) -> np.ndarray:
         The network (evaluated without gradients, in its current train/eval mode).
     low_res_rgb : numpy.ndarray
         Shape (H, W, 3), float values in [0, 1] (the caller chooses linear or sRGB).
+    runner : callable, optional
+        Evaluates the network on the (1, 1, 2H, 2W) luma instead of ``model`` itself,
+        e.g. a faster execution mode of :func:`reconstruction.inference.make_runner`.
 
     Returns
     -------
@@ -273,6 +276,6 @@ def superresolve(model: Superresolution, low_res_rgb: np.ndarray) -> np.ndarray:
     x = torch.from_numpy(np.ascontiguousarray(low_res_rgb, dtype=np.float32)).permute(2, 0, 1)[None]
     with torch.inference_mode():
         ycbcr = ycbcr_from_rgb(bicubic_upsample(x).clamp(0.0, 1.0), channel_axis=-3)
-        y = model(ycbcr[:, :1])
+        y = model(ycbcr[:, :1]) if runner is None else runner(ycbcr[:, :1])
         rgb = rgb_from_ycbcr(torch.cat([y, ycbcr[:, 1:]], dim=1), channel_axis=-3).clamp(0.0, 1.0)
     return rgb[0].permute(1, 2, 0).numpy().copy()

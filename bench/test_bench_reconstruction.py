@@ -1,0 +1,85 @@
+"""Reconstruction benchmarks: our denoiser against OIDN (group ``denoise``), our 2x superresolution against bicubic (``superres``).
+
+Run from the repository root (see ``bench/_measure_reconstruction.py`` for what is measured)::
+
+    .venv/bin/pytest bench/test_bench_reconstruction.py --benchmark-enable
+
+The nets are the ``quick`` profile's, trained on ``cbox-original`` (or reused from the
+cache); the frame is a 512x512 4 spp render with a 256 spp Mitsuba reference (cached).
+Each test validates what it timed. At the end of the session the same-run ratios
+(OIDN/ours and bicubic/ours seconds) are written into every benchmark's ``extra_info``,
+a table is printed and, when benchmarking is enabled,
+``bench/results/reconstruction_summary.json`` is written atomically.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from bench._measure_reconstruction import (
+    DENOISERS,
+    UPSAMPLERS,
+    ReconstructionBench,
+    ReconstructionResults,
+    measure_denoise,
+    measure_superres,
+    write_reconstruction_summary,
+)
+
+SUMMARY_PATH = Path(__file__).parent / "results" / "reconstruction_summary.json"
+
+
+class _SummaryPlugin:
+    """Prints the reconstruction table in pytest's terminal summary."""
+
+    def __init__(self, results: ReconstructionResults) -> None:
+        self.results = results
+        self.lines: list[str] = []
+
+    def pytest_terminal_summary(self, terminalreporter):
+        if not self.results.rows:
+            return
+        terminalreporter.section("kdtrace reconstruction benchmark summary (times: shortest timed round)")
+        terminalreporter.write_line(self.results.table())
+        for line in self.lines:
+            terminalreporter.write_line(line)
+
+
+@pytest.fixture(scope="session")
+def reconstruction_results(pytestconfig):
+    """The run's :class:`ReconstructionResults`; finalised, summarised and saved after the last test."""
+    pytest.importorskip("pyoidn")
+    pytest.importorskip("mitsuba")
+    results = ReconstructionResults()
+    plugin = _SummaryPlugin(results)
+    pytestconfig.pluginmanager.register(plugin, "kdtrace-reconstruction-summary")
+    yield results
+    # Session fixtures are torn down before pytest-benchmark saves its JSON, so the ratios reach it.
+    results.finalize()
+    enabled = pytestconfig.getoption("benchmark_enable") or not pytestconfig.getoption("benchmark_disable")
+    if results.rows and enabled:
+        write_reconstruction_summary(SUMMARY_PATH, results)
+        plugin.lines.append(f"\nwrote {SUMMARY_PATH}")
+
+
+@pytest.fixture(scope="session")
+def reconstruction_bench(reconstruction_results) -> ReconstructionBench:
+    """Frame, trained nets and fast-inference choices, made once (untimed)."""
+    bench = ReconstructionBench()
+    bench.options  # decided before any timing
+    return bench
+
+
+#: Group -> (measuring function, methods in run order: the baseline first).
+MEASURES = {"denoise": (measure_denoise, DENOISERS), "superres": (measure_superres, UPSAMPLERS)}
+
+
+@pytest.mark.parametrize(("group", "method"), [(group, method) for group, (_, methods) in MEASURES.items()
+                                               for method in methods])
+def test_reconstruction(benchmark, reconstruction_bench, reconstruction_results, group, method):
+    benchmark.group = group
+    info = MEASURES[group][0](benchmark, reconstruction_bench, method)
+    benchmark.extra_info.update(info)
+    reconstruction_results.add(info, benchmark.extra_info)

@@ -1,0 +1,457 @@
+"""Tables 2, 3, 5 and 6 of the paper, regenerated: denoising, the mixed model, superresolution, speed.
+
+For a report profile (``[profiles.NAME]``) and its reconstruction profile
+(``[reconstruction.profiles.*]``), :func:`generate`
+
+1. generates or reuses the Precision Graphics dataset of every ``reconstruction_scenes``
+   scene and of the ``unseen_scene`` (:func:`reconstruction.data.generate_dataset`);
+2. trains or reuses one denoiser per scene, one **mixed** denoiser over all of them and
+   one superresolution net (photos plus the training views of all scenes)
+   (:mod:`reconstruction.train`; all content-addressed in the cache);
+3. measures, pooled over whole views (:func:`reconstruction.evaluate.pooled`):
+
+   * Table 2 — per scene, the per-scene and the mixed model on the train, validation
+     and test views; the mixed model pooled over all scenes;
+   * Table 3 — the mixed model on each scene's test views and on **all** views of the
+     unseen scene (none of which it saw: using every view gives the figure more
+     pixels), with the noisy input and OIDN beside it;
+   * Table 5 — superresolution 2x against bicubic and Lanczos: on the training and
+     validation photos, on the held-out photo test set
+     (:data:`reconstruction.evaluate.TEST_PHOTOS`) and per scene on the test views;
+   * Table 6 — per scene, at the report profile's frame size, a noisy render of the
+     default view with a Mitsuba reference (:func:`reconstruction.speed.render_frame`):
+     the fast-inference decision of both nets (a faster mode only if PSNR changes by at
+     most 0.05 dB), then seconds of our denoiser against OIDN on the same buffers, and of
+     superresolution to twice the frame size against bicubic (medians after a warm-up;
+     only the ratios mean anything across machines);
+
+4. writes ``table2``, ``table3``, ``table5``, ``table6`` and ``quality`` as Markdown and
+   CSV, ``reconstruction_provenance.json`` and the gated metrics
+   (``metrics/reconstruction.json``), every file atomically.
+
+The paper's published figures stand beside ours (:mod:`reports.paper_figures`), on the
+stand-in scenes of Table 1. Tables say which datasets and models were reused from the
+cache; a rerun only evaluates.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import time
+import warnings
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import pandas as pd
+import torch
+from tabulate import tabulate
+from tqdm import tqdm
+
+from kdtrace.cache import atomic_write_bytes
+from kdtrace.config import Config
+from kdtrace.provenance import stamp
+from reports.metrics import Metric, write_metrics
+from reports.notes import ReportNote
+from reports.paper_figures import TABLE2, TABLE3, TABLE5, TABLE6
+
+#: Output stems, each written as ``.md`` and ``.csv``.
+TABLES = ("table2", "table3", "table5", "table6", "quality")
+
+
+# ------------------------------------------------------------------ stages
+@dataclasses.dataclass
+class Stage:
+    """One dataset or training run: its seconds and whether the cache already held it."""
+
+    name: str
+    seconds: float
+    reused: bool
+
+
+def _run_stage(stages: list[Stage], name: str, started: float, work: Callable[[], Any],
+               was_made: Callable[[Any], float]) -> Any:
+    """Run ``work``, record its seconds and whether its artefact predates ``started`` (reused)."""
+    begin = time.perf_counter()
+    result = work()
+    stages.append(Stage(name, time.perf_counter() - begin, was_made(result) < started))
+    return result
+
+
+def _dataset_made(dataset) -> float:
+    return (dataset.root / "manifest.json").stat().st_mtime  # written last, once, when the dataset is complete
+
+
+def _model_made(result) -> float:
+    return (result.directory / "checkpoint.pt").stat().st_mtime
+
+
+# ------------------------------------------------------------------ measurement
+def _measure(config: Config, profile_name: str, fresh: bool, progress: bool) -> dict[str, Any]:
+    """Train or reuse everything and measure every number of the tables."""
+    from reconstruction import evaluate, speed
+    from reconstruction.data import TRAIN_PHOTOS, VALIDATION_PHOTOS, generate_dataset, photo
+    from reconstruction.train import parameter_count, train_denoiser, train_superres
+
+    profile = config.profile(profile_name)
+    recon = config.reconstruction.profile(profile.reconstruction_profile)
+    scenes = list(profile.reconstruction_scenes)
+    if not scenes:
+        raise ValueError(f"profile {profile_name!r} names no reconstruction_scenes")
+    unseen = profile.unseen_scene
+    started = time.time() - 1.0  # file times have coarse resolution on some systems
+    stages: list[Stage] = []
+    steps = len(scenes) + bool(unseen) + len(scenes) + 2 + 2 * len(scenes) + 1
+    bar = tqdm(total=steps, unit="step", desc=f"reconstruction ({profile_name})", disable=not progress)
+
+    def step(label: str) -> None:
+        bar.set_postfix_str(label)
+
+    datasets = {}
+    for name in scenes + ([unseen] if unseen else []):
+        step(f"dataset {name}")
+        datasets[name] = _run_stage(stages, f"dataset {name}", started,
+                                    lambda name=name: generate_dataset(name, recon, progress=False), _dataset_made)
+        bar.update()
+    models = {}
+    for name in scenes:
+        step(f"denoiser {name}")
+        models[name] = _run_stage(stages, f"denoiser {name}", started,
+                                  lambda name=name: train_denoiser([name], recon, progress=False), _model_made)
+        bar.update()
+    step("mixed denoiser")
+    mixed = _run_stage(stages, "mixed denoiser", started, lambda: train_denoiser(scenes, recon, progress=False),
+                       _model_made)
+    bar.update()
+    step("superresolution")
+    superres = _run_stage(stages, "superresolution", started,
+                          lambda: train_superres(recon, scenes, progress=False), _model_made)
+    bar.update()
+
+    quality: dict[str, Any] = {}
+    for name in scenes:
+        step(f"quality {name}")
+        dataset = datasets[name]
+        quality[name] = {
+            "views": {split: len(dataset.views(split)) for split in ("train", "validation", "test")},
+            "ours": {split: evaluate.denoiser_quality(models[name].model, dataset, split, with_oidn=split == "test")
+                     for split in ("train", "validation", "test")},
+            "mixed": {split: evaluate.denoiser_quality(mixed.model, dataset, split, with_oidn=False)["ours"]
+                      for split in ("train", "validation", "test")},
+            "superres": evaluate.superres_quality(superres.model, dataset, "test", recon.superres_downsample),
+        }
+        bar.update()
+    unseen_quality = None
+    if unseen:
+        step(f"unseen {unseen}")
+        unseen_quality = {"views": len(datasets[unseen].views()),
+                          **evaluate.denoiser_quality(mixed.model, datasets[unseen], None, with_oidn=True)}
+    step("photos")
+    photos = {
+        "train": evaluate.superres_images(superres.model, [photo(n) for n in TRAIN_PHOTOS], recon.superres_downsample),
+        "validation": evaluate.superres_images(superres.model, [photo(n) for n in VALIDATION_PHOTOS],
+                                               recon.superres_downsample),
+        "test": evaluate.superres_images(superres.model, [evaluate.held_out_photo(n) for n in evaluate.TEST_PHOTOS],
+                                         recon.superres_downsample),
+    }
+    bar.update()
+
+    timing = {}
+    for name in scenes:
+        step(f"frame {name}")
+        frame = speed.render_frame(name, profile.frame_width, profile.frame_height, profile.frame_spp,
+                                   recon.max_depth, profile.seed, recon.reference_spp, cache=not fresh)
+        bar.update()
+        step(f"timing {name}")
+        decisions = speed.choose_options(models[name].model, superres.model, frame, recon.superres_downsample)
+        timing[name] = {
+            "threads": torch.get_num_threads(),
+            "denoise_option": decisions["denoise"].chosen,
+            "superres_option": decisions["superres"].chosen,
+            "decisions": {kind: [dataclasses.asdict(r) for r in decision.results]
+                          for kind, decision in decisions.items()},
+            "denoise": speed.time_denoise(models[name].model, frame, decisions["denoise"].chosen),
+            "superres": speed.time_superres(superres.model, frame.reference, decisions["superres"].chosen),
+        }
+        bar.update()
+    bar.close()
+    return {
+        "profile": profile_name, "reconstruction_profile": profile.reconstruction_profile, "scenes": scenes,
+        "unseen": unseen, "frame": [profile.frame_width, profile.frame_height], "frame_spp": profile.frame_spp,
+        "stages": [dataclasses.asdict(s) for s in stages],
+        "best_epochs": {**{name: models[name].best_epoch for name in scenes}, "mixed": mixed.best_epoch,
+                        "superres": superres.best_epoch},
+        "epochs": recon.epochs,
+        "parameters": {"denoiser": parameter_count(mixed.model), "superres": parameter_count(superres.model)},
+        "quality": quality, "unseen_quality": unseen_quality, "photos": photos, "timing": timing,
+    }
+
+
+# ------------------------------------------------------------------ tables
+def _f(value: float | None, digits: int = 2) -> str:
+    return "" if value is None or (isinstance(value, float) and math.isnan(value)) else f"{value:.{digits}f}"
+
+
+def _paper_name(scene: str) -> str:
+    paper = TABLE2.get(scene) or TABLE3.get(scene) or {}
+    return scene + (f" ({paper['paper_scene']})" if paper else "")
+
+
+def _reused(stages: list[dict], name: str) -> str:
+    stage = next(s for s in stages if s["name"] == name)
+    return "reused" if stage["reused"] else f"trained {stage['seconds']:.0f} s"
+
+
+def _table2(m: dict) -> list[dict]:
+    rows = []
+    for name in m["scenes"]:
+        q, paper = m["quality"][name], TABLE2.get(name, {})
+        for model in ("ours", "mixed"):
+            metrics = {split: (q[model][split]["ours"] if model == "ours" else q[model][split])
+                       for split in ("train", "validation", "test")}
+            rows.append({"scene": name, "model": "per-scene" if model == "ours" else "mixed",
+                         "train_psnr": metrics["train"]["psnr"], "validation_psnr": metrics["validation"]["psnr"],
+                         "test_psnr": metrics["test"]["psnr"], "test_rmse": metrics["test"]["rmse"],
+                         "test_views": q["views"]["test"],
+                         "paper_test_psnr": paper.get("test_psnr") if model == "ours" else None,
+                         "paper_test_rmse": paper.get("test_rmse") if model == "ours" else None,
+                         "model_source": _reused(m["stages"], f"denoiser {name}" if model == "ours" else "mixed denoiser")})
+    from reconstruction.evaluate import combine
+
+    pooled = {split: combine([m["quality"][n]["mixed"][split] for n in m["scenes"]]) for split in ("train", "validation", "test")}
+    per_scene = combine([m["quality"][n]["ours"]["test"]["ours"] for n in m["scenes"]])
+    rows.append({"scene": "all scenes", "model": "mixed", "train_psnr": pooled["train"]["psnr"],
+                 "validation_psnr": pooled["validation"]["psnr"], "test_psnr": pooled["test"]["psnr"],
+                 "test_rmse": pooled["test"]["rmse"], "test_views": pooled["test"]["images"],
+                 "paper_test_psnr": TABLE2["mixed"]["test_psnr"], "paper_test_rmse": TABLE2["mixed"]["test_rmse"],
+                 "model_source": _reused(m["stages"], "mixed denoiser")})
+    rows.append({"scene": "all scenes", "model": "per-scene", "train_psnr": None, "validation_psnr": None,
+                 "test_psnr": per_scene["psnr"], "test_rmse": per_scene["rmse"], "test_views": per_scene["images"],
+                 "paper_test_psnr": None, "paper_test_rmse": None, "model_source": "each scene's own model"})
+    return rows
+
+
+def _table3(m: dict) -> list[dict]:
+    rows = []
+    for name in m["scenes"]:
+        q, paper = m["quality"][name], TABLE3.get(name, {})
+        rows.append({"scene": name, "views": f"test ({q['views']['test']})", "mixed_psnr": q["mixed"]["test"]["psnr"],
+                     "mixed_rmse": q["mixed"]["test"]["rmse"], "per_scene_psnr": q["ours"]["test"]["ours"]["psnr"],
+                     "psnr_difference": q["ours"]["test"]["ours"]["psnr"] - q["mixed"]["test"]["psnr"],
+                     "noisy_psnr": q["ours"]["test"]["noisy"]["psnr"],
+                     "oidn_psnr": q["ours"]["test"].get("oidn", {}).get("psnr"),
+                     "paper_mixed_psnr": paper.get("test_psnr"), "paper_mixed_rmse": paper.get("test_rmse"),
+                     "paper_psnr_difference": paper.get("psnr_difference")})
+    if m["unseen_quality"]:
+        u, paper = m["unseen_quality"], TABLE3["unseen"]
+        rows.append({"scene": f"{m['unseen']} (never seen)", "views": f"all ({u['views']})",
+                     "mixed_psnr": u["ours"]["psnr"], "mixed_rmse": u["ours"]["rmse"], "per_scene_psnr": None,
+                     "psnr_difference": None, "noisy_psnr": u["noisy"]["psnr"],
+                     "oidn_psnr": u.get("oidn", {}).get("psnr"),
+                     "paper_mixed_psnr": paper["test_psnr"], "paper_mixed_rmse": paper["test_rmse"],
+                     "paper_psnr_difference": None})
+    return rows
+
+
+def _sr_row(label: str, split: str, results: dict, paper: dict | None = None) -> dict:
+    return {"data": label, "split": split, "images": results["ours"]["images"],
+            **{f"{method}_{key}": results[method][key] for method in ("bicubic", "lanczos", "ours")
+               for key in ("psnr", "rmse")},
+            "gain_over_bicubic": results["ours"]["psnr"] - results["bicubic"]["psnr"],
+            "paper_psnr": (paper or {}).get(f"{split}_psnr"), "paper_rmse": (paper or {}).get(f"{split}_rmse")}
+
+
+def _table5(m: dict) -> list[dict]:
+    from reconstruction.evaluate import combine
+
+    rows = [_sr_row("photos", split, m["photos"][split], TABLE5["photos"]) for split in ("train", "validation", "test")]
+    rows += [_sr_row(name, "test", m["quality"][name]["superres"]) for name in m["scenes"]]
+    pooled = {method: combine([m["quality"][n]["superres"][method] for n in m["scenes"]])
+              for method in ("bicubic", "lanczos", "ours")}
+    rows.append(_sr_row("all scenes", "test", pooled))
+    return rows
+
+
+def _table6(m: dict) -> list[dict]:
+    rows = []
+    width, height = m["frame"]
+    for name in m["scenes"]:
+        t, paper = m["timing"][name], TABLE6.get(name, {})
+        rows.append({"scene": name, "frame": f"{width}x{height}", "denoise_option": t["denoise_option"],
+                     "ours_denoise_s": t["denoise"]["ours_seconds"], "oidn_s": t["denoise"]["oidn_seconds"],
+                     "oidn_over_ours": t["denoise"]["oidn_over_ours"], "noisy_psnr": t["denoise"]["noisy_psnr"],
+                     "ours_psnr": t["denoise"]["ours_psnr"], "oidn_psnr": t["denoise"]["oidn_psnr"],
+                     "superres_option": t["superres_option"], "superres_output": f"{2 * width}x{2 * height}",
+                     "ours_superres_s": t["superres"]["ours_seconds"], "bicubic_s": t["superres"]["bicubic_seconds"],
+                     "bicubic_over_ours": t["superres"]["bicubic_over_ours"],
+                     "paper_denoise_s": paper.get("denoise_seconds"), "paper_superres_s": paper.get("superres_seconds"),
+                     "threads": t["threads"]})
+    return rows
+
+
+def _quality(m: dict) -> list[dict]:
+    rows = []
+    for name in m["scenes"]:
+        q = m["quality"][name]
+        test = q["ours"]["test"]
+        rows.append({"scene": name, "noisy": test["noisy"]["psnr"], "ours": test["ours"]["psnr"],
+                     "mixed": q["mixed"]["test"]["psnr"], "oidn": test.get("oidn", {}).get("psnr"),
+                     "paper_ours": TABLE2.get(name, {}).get("test_psnr"),
+                     "paper_mixed": TABLE3.get(name, {}).get("test_psnr"),
+                     "bicubic": q["superres"]["bicubic"]["psnr"], "lanczos": q["superres"]["lanczos"]["psnr"],
+                     "ours_superres": q["superres"]["ours"]["psnr"]})
+    if m["unseen_quality"]:
+        u = m["unseen_quality"]
+        rows.append({"scene": f"{m['unseen']} (never seen)", "noisy": u["noisy"]["psnr"], "ours": None,
+                     "mixed": u["ours"]["psnr"], "oidn": u.get("oidn", {}).get("psnr"), "paper_ours": None,
+                     "paper_mixed": TABLE3["unseen"]["test_psnr"], "bicubic": None, "lanczos": None,
+                     "ours_superres": None})
+    return rows
+
+
+def _cell(column: str, value: Any) -> str:
+    """A table cell: seconds (``*_s``) with 4 decimals, RMSE with 4, other floats with 2."""
+    if isinstance(value, float):
+        return _f(value, 4 if column.endswith("_s") or "rmse" in column else 2)
+    return "" if value is None else str(value)
+
+
+def _markdown(rows: list[dict], scene_columns: tuple[str, ...] = ("scene",)) -> str:
+    shown = [{column: (_paper_name(value) if column in scene_columns and isinstance(value, str) else _cell(column, value))
+              for column, value in row.items()} for row in rows]
+    return tabulate(shown, headers="keys", tablefmt="github", disable_numparse=True)
+
+
+_TITLES = {
+    "table2": ("Table 2 — denoiser quality per scene (per-scene and mixed models)",
+               "PSNR (dB) and RMSE pooled over whole views of each split, linear images clipped to [0, 1]. "
+               "`all scenes`: pooled over every scene's views (the paper's Mixed row is the mixed model on its own "
+               "test set). Paper figures beside ours where the paper has the scene."),
+    "table3": ("Table 3 — the mixed model on each scene and on a scene it never saw",
+               "`psnr_difference` = per-scene model minus mixed model on the same test views (positive: the "
+               "per-scene model is better, as in the paper). The unseen scene is measured on all its views, none "
+               "of which the mixed model saw; the paper's unseen scene is Pine, ours differs."),
+    "table5": ("Table 5 — superresolution 2x against bicubic and Lanczos",
+               "Each target is reduced 2x ({downsample}) and upsampled back; PSNR/RMSE pooled, clipped to [0, 1], "
+               "linear. Photos: whole images (train and validation photos were used in training / model choice; the "
+               "test photos never). Scenes: reference renders of the test views. The paper's per-scene rows repeat "
+               "its Table 2 (a typesetting error) and are not shown."),
+    "table6": ("Table 6 — network evaluation seconds, ours against OIDN and bicubic in the same run",
+               "Per scene: the default view at the report frame size, {spp} spp (our path tracer) with a Mitsuba "
+               "reference; seconds are medians of 3 calls after a warm-up, torch threads as listed, OIDN on its own "
+               "threads; PSNR against the reference checks what was timed. Options: the fast-inference mode chosen "
+               "(a faster mode only if PSNR changes by at most 0.05 dB). Paper seconds: Keras on the paper's CPU, "
+               "512 -> 1024; only ratios compare across machines."),
+    "quality": ("Reconstruction quality on the test views (PSNR, dB)",
+                "Denoising: noisy input / our per-scene model / the mixed model / OIDN (albedo and normal); "
+                "superresolution 2x: bicubic / Lanczos / ours. Paper figures from Tables 2 and 3."),
+}
+
+
+def _header(stem: str, m: dict, provenance: dict, reconstruction: Any) -> str:
+    title, note = _TITLES[stem]
+    note = note.format(downsample=reconstruction.superres_downsample, spp=m["frame_spp"])
+    machine = provenance["machine"]
+    reused = [s for s in m["stages"] if s["reused"]]
+    made = [s for s in m["stages"] if not s["reused"]]
+    made_list = ", ".join(f"{s['name']} ({s['seconds']:.0f} s)" for s in made)
+    cache = (f"Reused from the cache: {len(reused)} of {len(m['stages'])} datasets and models"
+             + (f"; made in this run: {made_list}" if made else "") + ".")
+    return (f"# {title} ({m['profile']} profile)\n\n{note}\n\n"
+            f"Reconstruction profile `{m['reconstruction_profile']}` ({reconstruction.width}x{reconstruction.height} "
+            f"views, {reconstruction.spp} spp input, {reconstruction.reference} references at "
+            f"{reconstruction.reference_spp} spp, {m['epochs']} epochs; kept epochs: "
+            + ", ".join(f"{k} {v}" for k, v in m["best_epochs"].items()) + "). "
+            f"Machine: {machine['cpu']}, {machine['cores']} cores; {machine['date']}. {cache}\n\n")
+
+
+def write_outputs(m: dict, config: Config, out_dir: Path) -> dict[str, pd.DataFrame]:
+    """Write every table (Markdown and CSV) and the provenance record, atomically."""
+    reconstruction = config.reconstruction.profile(m["reconstruction_profile"])
+    provenance = stamp(config.to_dict(), profile=m["profile"], seed=config.profile(m["profile"]).seed,
+                       stages=m["stages"], best_epochs=m["best_epochs"], parameters=m["parameters"],
+                       fast_inference={name: t["decisions"] for name, t in m["timing"].items()})
+    tables = {"table2": _table2(m), "table3": _table3(m), "table5": _table5(m), "table6": _table6(m),
+              "quality": _quality(m)}
+    out_dir.mkdir(parents=True, exist_ok=True)
+    frames = {}
+    for stem, rows in tables.items():
+        frames[stem] = pd.DataFrame(rows)
+        scene_columns = ("scene", "data")
+        text = _header(stem, m, provenance, reconstruction) + _markdown(rows, scene_columns) + "\n"
+        atomic_write_bytes(out_dir / f"{stem}.md", text.encode())
+        atomic_write_bytes(out_dir / f"{stem}.csv", frames[stem].to_csv(index=False).encode())
+    atomic_write_bytes(out_dir / "reconstruction_provenance.json",
+                       json.dumps({**provenance, "measurements": m}, indent=1, default=str).encode())
+    return frames
+
+
+def metrics_of(m: dict) -> list[Metric]:
+    """The gated metrics of one run (see :mod:`reports.metrics`)."""
+    out = [Metric("table2/denoiser/parameters", "count", m["parameters"]["denoiser"], "trainable parameters"),
+           Metric("table5/superres/parameters", "count", m["parameters"]["superres"], "trainable parameters")]
+    for name in m["scenes"]:
+        q = m["quality"][name]
+        out += [Metric(f"table2/{name}/ours_test_psnr", "psnr", q["ours"]["test"]["ours"]["psnr"],
+                       "per-scene denoiser, test views, dB"),
+                Metric(f"table2/{name}/mixed_test_psnr", "psnr", q["mixed"]["test"]["psnr"],
+                       "mixed denoiser, this scene's test views, dB"),
+                Metric(f"table5/{name}/ours_test_psnr", "psnr", q["superres"]["ours"]["psnr"],
+                       "superresolution 2x, test views, dB")]
+        t = m["timing"][name]
+        out += [Metric(f"table6/{name}/oidn_over_ours_seconds", "ratio", t["denoise"]["oidn_over_ours"],
+                       f"OIDN seconds / ours ({t['denoise_option']}), same frame"),
+                Metric(f"table6/{name}/bicubic_over_ours_seconds", "ratio", t["superres"]["bicubic_over_ours"],
+                       f"bicubic seconds / our superresolution ({t['superres_option']}), same frame")]
+    if m["unseen_quality"]:
+        out.append(Metric(f"table3/{m['unseen']}/mixed_psnr", "psnr", m["unseen_quality"]["ours"]["psnr"],
+                          "mixed denoiser on the never-seen scene, all views, dB"))
+    out.append(Metric("table5/photos/ours_test_psnr", "psnr", m["photos"]["test"]["ours"]["psnr"],
+                      "superresolution 2x, held-out photos, dB"))
+    return out
+
+
+def generate(config: Config, profile_name: str, out_dir: str | Path, fresh: bool = False,
+             progress: bool = True) -> list[Metric]:
+    """Run (or reuse) the reconstruction experiments of a profile and write Tables 2, 3, 5, 6.
+
+    Parameters
+    ----------
+    config : Config
+        Resolved configuration.
+    profile_name : str
+        A report profile (``[profiles.NAME]``); its ``reconstruction_profile``,
+        ``reconstruction_scenes``, ``unseen_scene`` and frame size are used.
+    out_dir : str or Path
+        Receives ``table2``, ``table3``, ``table5``, ``table6``, ``quality`` (``.md`` and
+        ``.csv``), ``reconstruction_provenance.json`` and ``metrics/reconstruction.json``.
+    fresh : bool
+        Render the Mitsuba references of the timed frames again instead of loading them
+        from the cache. Datasets and models are keyed by content and deterministic, so
+        they are always reused; point ``KDTRACE_CACHE`` elsewhere to rebuild them.
+    progress : bool
+        Show a tqdm bar over the steps.
+
+    Returns
+    -------
+    list of Metric
+        PSNRs (dB) of every per-scene, mixed and superresolution test result, the two
+        parameter counts, and per scene the same-run speed ratios OIDN/ours and
+        bicubic/ours superresolution seconds (higher is better for us).
+    """
+    out_dir = Path(out_dir)
+    if not config.profile(profile_name).reconstruction_scenes:
+        warnings.warn(f"reconstruction tables skipped: profile {profile_name!r} has no reconstruction scenes "
+                      "(left out by --scenes?)", ReportNote, stacklevel=2)
+        return []
+    measurements = _measure(config, profile_name, fresh, progress)
+    reused = [stage["name"] for stage in measurements["stages"] if stage["reused"]]
+    if reused:
+        warnings.warn(f"reconstruction: reused {len(reused)} of {len(measurements['stages'])} datasets and models "
+                      "from the cache", ReportNote, stacklevel=2)
+    write_outputs(measurements, config, out_dir)
+    metrics = metrics_of(measurements)
+    write_metrics(out_dir, "reconstruction", metrics)
+    return metrics

@@ -1,0 +1,154 @@
+"""Tables 2, 3, 5, 6 and the quality table (``reports/reconstruction_tables.py``).
+
+The fast test writes the tables from a synthetic set of measurements (no training): the
+files, the paper's figures beside ours, the reuse notes, the derived columns
+(differences, pooled rows, ratios) and the gated metrics. The end-to-end test runs the
+whole thing twice on a tiny profile (32x32 views, 2 epochs) in a private cache: the
+second run must reuse every dataset and model, say so, and give the same PSNRs (about
+25 s on 2 idle cores: 15 s, then 6 s for the rerun).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+
+import pandas as pd
+import pytest
+
+from kdtrace.config import DEFAULT_CONFIG, load_config
+from reports import reconstruction_tables as rt
+from reports.metrics import read_metrics
+from reports.paper_figures import TABLE2, TABLE3
+
+SCENES = ["cbox-sphere", "car"]
+UNSEEN = "samurai-monastery"
+
+
+def _pooled(psnr: float, images: int = 2, pixels: int = 2 * 64 * 64 * 3) -> dict[str, float]:
+    return {"psnr": psnr, "rmse": 10 ** (-psnr / 20), "psnr_mean": psnr + 1, "images": images, "pixels": pixels}
+
+
+def _measurements() -> dict:
+    quality = {}
+    for offset, name in enumerate(SCENES):
+        base = 30.0 + offset
+        quality[name] = {
+            "views": {"train": 4, "validation": 1, "test": 2},
+            "ours": {"train": {"noisy": _pooled(base - 8), "ours": _pooled(base + 2)},
+                     "validation": {"noisy": _pooled(base - 8), "ours": _pooled(base + 1)},
+                     "test": {"noisy": _pooled(base - 8), "ours": _pooled(base), "oidn": _pooled(base + 0.5)}},
+            "mixed": {split: _pooled(base - 1.5) for split in ("train", "validation", "test")},
+            "superres": {"bicubic": _pooled(40.0), "lanczos": _pooled(40.2), "ours": _pooled(41.0)},
+        }
+    timing = {name: {"threads": 2, "denoise_option": "channels_last", "superres_option": "fp32", "decisions": {},
+                     "denoise": {"ours_seconds": 0.1, "oidn_seconds": 0.3, "oidn_over_ours": 3.0, "noisy_psnr": 20.0,
+                                 "ours_psnr": 30.0, "oidn_psnr": 31.0, "pixels": 65536},
+                     "superres": {"ours_seconds": 0.2, "bicubic_seconds": 0.01, "bicubic_over_ours": 0.05,
+                                  "ours_consistency_psnr": 45.0, "bicubic_consistency_psnr": 44.0,
+                                  "output_pixels": 262144}}
+              for name in SCENES}
+    stages = ([{"name": f"dataset {n}", "seconds": 1.0, "reused": True} for n in [*SCENES, UNSEEN]]
+              + [{"name": f"denoiser {n}", "seconds": 0.5, "reused": True} for n in SCENES]
+              + [{"name": "mixed denoiser", "seconds": 12.0, "reused": False},
+                 {"name": "superresolution", "seconds": 0.5, "reused": True}])
+    photos = {split: {"bicubic": _pooled(30.0), "lanczos": _pooled(30.1), "ours": _pooled(30.5)}
+              for split in ("train", "validation", "test")}
+    return {"profile": "quick", "reconstruction_profile": "quick", "scenes": SCENES, "unseen": UNSEEN,
+            "frame": [256, 256], "frame_spp": 4, "stages": stages, "epochs": 40,
+            "best_epochs": {"cbox-sphere": 30, "car": 20, "mixed": 40, "superres": 10},
+            "parameters": {"denoiser": 95107, "superres": 37793}, "quality": quality,
+            "unseen_quality": {"views": 7, "noisy": _pooled(20.0), "ours": _pooled(22.0), "oidn": _pooled(27.0)},
+            "photos": photos, "timing": timing}
+
+
+def test_tables_from_measurements(tmp_path):
+    m = _measurements()
+    frames = rt.write_outputs(m, DEFAULT_CONFIG, tmp_path)
+    for stem in rt.TABLES:
+        text = (tmp_path / f"{stem}.md").read_text()
+        assert "Reused from the cache: 6 of 7 datasets and models; made in this run: mixed denoiser (12 s)." in text
+        pd.testing.assert_frame_equal(pd.read_csv(tmp_path / f"{stem}.csv"), frames[stem], check_dtype=False)
+    table2 = frames["table2"].set_index(["scene", "model"])
+    assert table2.loc[("cbox-sphere", "per-scene"), "paper_test_psnr"] == TABLE2["cbox-sphere"]["test_psnr"]
+    assert table2.loc[("cbox-sphere", "per-scene"), "model_source"] == "reused"
+    assert table2.loc[("car", "mixed"), "model_source"] == "trained 12 s"
+    # both scenes' mixed test views pooled: equal pixel counts, so the MSEs average
+    expected = -10 * math.log10((10 ** (-28.5 / 10) + 10 ** (-29.5 / 10)) / 2)
+    assert table2.loc[("all scenes", "mixed"), "test_psnr"] == pytest.approx(expected)
+    assert table2.loc[("all scenes", "mixed"), "test_views"] == 4
+    assert "cbox-sphere (CBox)" in (tmp_path / "table2.md").read_text()
+
+    table3 = frames["table3"].set_index("scene")
+    assert table3.loc["car", "psnr_difference"] == pytest.approx(1.5)
+    assert table3.loc["car", "paper_psnr_difference"] == TABLE3["car"]["psnr_difference"]
+    assert table3.loc[f"{UNSEEN} (never seen)", "mixed_psnr"] == pytest.approx(22.0)
+    assert table3.loc[f"{UNSEEN} (never seen)", "views"] == "all (7)"
+    assert table3.loc[f"{UNSEEN} (never seen)", "paper_mixed_psnr"] == TABLE3["unseen"]["test_psnr"]
+
+    table5 = frames["table5"]
+    assert list(table5["data"]) == ["photos"] * 3 + SCENES + ["all scenes"]
+    assert table5["gain_over_bicubic"].iloc[-1] == pytest.approx(1.0)
+    table6 = frames["table6"].set_index("scene")
+    assert table6.loc["car", "oidn_over_ours"] == pytest.approx(3.0)
+    assert table6.loc["car", "paper_denoise_s"] == pytest.approx(1.92)
+    quality = frames["quality"].set_index("scene")
+    assert quality.loc["cbox-sphere", ["noisy", "ours", "mixed", "oidn"]].tolist() == pytest.approx([22, 30, 28.5, 30.5])
+    provenance = json.loads((tmp_path / "reconstruction_provenance.json").read_text())
+    assert provenance["profile"] == "quick" and provenance["machine"]["cores"] >= 1
+
+    metrics = rt.metrics_of(m)
+    by_name = {metric.name: metric for metric in metrics}
+    assert by_name["table2/denoiser/parameters"].value == 95107 and by_name["table2/denoiser/parameters"].kind == "count"
+    assert by_name["table2/car/ours_test_psnr"].value == pytest.approx(31.0)
+    assert by_name["table2/car/mixed_test_psnr"].kind == "psnr"
+    assert by_name["table6/car/oidn_over_ours_seconds"].kind == "ratio"
+    assert by_name[f"table3/{UNSEEN}/mixed_psnr"].value == pytest.approx(22.0)
+    assert {metric.kind for metric in metrics} == {"count", "psnr", "ratio"}
+
+
+TINY = """
+[profiles.tiny]
+scenes = ["cbox-original"]
+frame_width = 32
+frame_height = 32
+reconstruction_profile = "tiny"
+reconstruction_scenes = ["cbox-original", "cbox-sphere"]
+unseen_scene = "cbox-empty"
+
+[reconstruction.profiles.tiny]
+positions = 1
+views_per_position = 3
+width = 32
+height = 32
+spp = 2
+reference_spp = 8
+crop_size = 16
+crops_per_view = 4
+epochs = 2
+batch_size = 4
+superres_crop_size = 16
+superres_crops_per_image = 2
+"""
+
+
+def test_generate_end_to_end_and_reuse(tmp_path, monkeypatch, shared_scenes):
+    pytest.importorskip("mitsuba")
+    pytest.importorskip("pyoidn")
+    monkeypatch.setenv("KDTRACE_CACHE", str(tmp_path / "cache"))
+    (tmp_path / "tiny.toml").write_text(TINY)
+    config = load_config(tmp_path / "tiny.toml")
+    started = time.perf_counter()
+    metrics = rt.generate(config, "tiny", tmp_path / "out", progress=False)
+    first = time.perf_counter() - started
+    assert "made in this run: dataset cbox-original" in (tmp_path / "out" / "table2.md").read_text()
+    started = time.perf_counter()
+    again = rt.generate(config, "tiny", tmp_path / "out", progress=False)
+    second = time.perf_counter() - started
+    print(f"\n[tiny] first run {first:.1f} s, rerun {second:.1f} s")
+    assert "Reused from the cache: 7 of 7 datasets and models." in (tmp_path / "out" / "table2.md").read_text()
+    assert second < first
+    psnrs = {m.name: m.value for m in metrics if m.kind == "psnr"}
+    assert psnrs == {m.name: m.value for m in again if m.kind == "psnr"}  # same cached models, same numbers
+    assert {m.name for m in read_metrics(tmp_path / "out" / "metrics" / "reconstruction.json")} == {m.name for m in again}
