@@ -9,6 +9,7 @@ report part of a profile), ``gate`` and ``update-baseline`` (the CI regression g
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 from pathlib import Path
@@ -132,6 +133,11 @@ def _report(args, config) -> int:
     scenes = args.scenes.split(",") if args.scenes else None
     parts = args.parts.split(",") if args.parts else None
     out_dir = Path(args.out) if args.out else REPOSITORY / "reports" / args.profile
+    if args.scheduler:
+        # the environment is where every part (and the dataset generator) looks for a scheduler
+        from kdtrace.distributed import SCHEDULER_ENV
+
+        os.environ[SCHEDULER_ENV] = args.scheduler
     started = time.perf_counter()
     outcome = run_report(config, args.profile, out_dir, scenes=scenes, fresh=args.fresh, gate=args.gate, parts=parts)
     print(f"\nwrote {out_dir}/README.md (index of every table and plot) and provenance.json; "
@@ -240,6 +246,8 @@ def build_parser() -> argparse.ArgumentParser:
     report.add_argument("--out", help="output folder (default reports/PROFILE)")
     report.add_argument("--fresh", action="store_true", help="measure everything again instead of reusing results")
     report.add_argument("--gate", action="store_true", help="then compare with reports/baseline/PROFILE.json; exit 1 on a regression")
+    report.add_argument("--scheduler", help="address of a running Dask scheduler: Table 1 rows and dataset views "
+                        "become units of work on its workers (default $KDTRACE_SCHEDULER, else all in this process)")
     report.set_defaults(run=_report)
 
     for command, run, what in (("gate", _gate, "compare the latest run's metrics with the committed baseline"),

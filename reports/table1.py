@@ -11,6 +11,13 @@ agreement check (unexplained disagreements must be 0).
 Rows are written per scene as soon as they are done (atomically), so an interrupted
 report resumes where it stopped; ``fresh=True`` recomputes. :func:`generate` returns the
 gated metrics (:mod:`reports.metrics`) and writes them to ``metrics/table1.json``.
+
+With a Dask scheduler (``kdtrace report --scheduler ADDRESS``, ``$KDTRACE_SCHEDULER`` or
+``[distributed] scheduler``) the missing rows are measured as units of
+:mod:`kdtrace.distributed`, one scene each, on the workers' own threads (the row records
+the worker and its thread count; all ratios stay within one worker); the client writes
+the rows, so a rerun skips every scene already measured. Without one, rows are measured
+in this process on all its threads.
 """
 
 from __future__ import annotations
@@ -162,23 +169,44 @@ def scene_row(name: str, config: Config, profile_name: str, progress: tqdm) -> d
     return row
 
 
-def _row_key(name: str, config: Config, profile_name: str) -> str:
+def _row_key(name: str, config: Config, profile_name: str, threads: int | None = None) -> str:
     profile = config.profile(profile_name)
     return content_key("table1-row", ROW_VERSION, name, config.kdtree.__dict__, config.render.__dict__,
-                       {field: getattr(profile, field) for field in PROFILE_FIELDS}, numba.get_num_threads())
+                       {field: getattr(profile, field) for field in PROFILE_FIELDS},
+                       numba.get_num_threads() if threads is None else threads)
 
 
 def _row_path(out_dir: Path, name: str) -> Path:
     return Path(out_dir) / "rows" / f"{name}.json"
 
 
-def cached_row(name: str, config: Config, profile_name: str, out_dir: Path) -> dict | None:
-    """The saved record (``key``, ``measured_at``, ``row``) of ``name`` if it matches the configuration, else None."""
+def measure_record(name: str, config: Config, profile_name: str, progress: tqdm) -> dict:
+    """Measure one scene's row on this process's threads: ``{key, threads, measured_at, row}``."""
+    threads = numba.get_num_threads()
+    row = scene_row(name, config, profile_name, progress)
+    row["threads"] = threads
+    return {"key": _row_key(name, config, profile_name, threads), "threads": threads,
+            "measured_at": time.strftime("%Y-%m-%d %H:%M:%S"), "row": row}
+
+
+def _remote_record(shared: tuple[Config, str], name: str) -> dict:
+    """Unit of work on a Dask worker: one scene's record (see :func:`measure_record`)."""
+    config, profile_name = shared
+    return measure_record(name, config, profile_name, tqdm(disable=True))
+
+
+def cached_row(name: str, config: Config, profile_name: str, out_dir: Path, any_threads: bool = False) -> dict | None:
+    """The saved record (``key``, ``measured_at``, ``row``) of ``name`` if it matches the configuration, else None.
+
+    The thread count is part of the match: this process's, or with ``any_threads`` (rows
+    measured on Dask workers) the one the record says it was measured with.
+    """
     path = _row_path(out_dir, name)
     if not path.exists():
         return None
     saved = json.loads(path.read_text())
-    return saved if saved.get("key") == _row_key(name, config, profile_name) else None
+    threads = saved.get("threads") if any_threads else None
+    return saved if saved.get("key") == _row_key(name, config, profile_name, threads) else None
 
 
 def load_rows(config: Config, profile_name: str, out_dir: Path) -> list[dict]:
@@ -190,7 +218,8 @@ def load_rows(config: Config, profile_name: str, out_dir: Path) -> list[dict]:
         When a scene has no row measured with this configuration (run Table 1 first).
     """
     names = config.profile(profile_name).scenes
-    records = {name: cached_row(name, config, profile_name, out_dir) for name in names}
+    # any thread count: rows measured on Dask workers count too (agreement does not depend on it)
+    records = {name: cached_row(name, config, profile_name, out_dir, any_threads=True) for name in names}
     missing = [name for name, record in records.items() if record is None]
     if missing:
         raise FileNotFoundError(f"no Table 1 row for {', '.join(missing)} in {Path(out_dir) / 'rows'} measured with "
@@ -221,20 +250,32 @@ def generate(config: Config, profile_name: str, out_dir: Path, fresh: bool = Fal
         speed (``ratio``), unexplained Embree disagreements (``zero``), triangle references
         of both trees (``count``).
     """
+    from kdtrace.distributed import Unit, run_units, scheduler_address
+
     out_dir = Path(out_dir)
     names = list(config.profile(profile_name).scenes)
-    rows, reused = [], []
-    bar = tqdm(names, unit="scene", desc=f"Table 1 ({profile_name})", disable=not progress)
-    for name in bar:
-        saved = None if fresh else cached_row(name, config, profile_name, out_dir)
+    address = scheduler_address(config=config.distributed)
+    records, reused = {}, []
+    for name in names:
+        saved = None if fresh else cached_row(name, config, profile_name, out_dir, any_threads=address is not None)
         if saved is not None:
             reused.append(f"{name} ({saved['measured_at']})")
-            rows.append(saved["row"])
-            continue
-        row = scene_row(name, config, profile_name, bar)
-        record = {"key": _row_key(name, config, profile_name), "measured_at": time.strftime("%Y-%m-%d %H:%M:%S"), "row": row}
-        atomic_write_bytes(_row_path(out_dir, name), json.dumps(record, indent=1).encode())
-        rows.append(row)
+            records[name] = saved
+    missing = [name for name in names if name not in records]
+    if address is not None and missing:
+        units = [Unit(f"table1-row-{name}-{_row_key(name, config, profile_name)[:16]}", (name,)) for name in missing]
+        for name, result in zip(missing, run_units(units, _remote_record, address, shared=(config, profile_name),
+                                                   progress=progress, description=f"Table 1 ({profile_name})",
+                                                   config=config.distributed)):
+            records[name] = result.value
+            records[name]["row"]["worker"] = result.worker
+            atomic_write_bytes(_row_path(out_dir, name), json.dumps(records[name], indent=1).encode())
+    else:
+        bar = tqdm(missing, unit="scene", desc=f"Table 1 ({profile_name})", disable=not progress)
+        for name in bar:
+            records[name] = measure_record(name, config, profile_name, bar)
+            atomic_write_bytes(_row_path(out_dir, name), json.dumps(records[name], indent=1).encode())
+    rows = [records[name]["row"] for name in names]
     if reused:
         message = f"Table 1: reused {len(reused)} of {len(names)} scene rows measured earlier: {', '.join(reused)} (--fresh measures again)"
         warnings.warn(message, ReportNote, stacklevel=2)

@@ -207,6 +207,34 @@ def test_stale_temporaries_of_dead_writers_are_removed(cache):
     assert fresh.is_file() and _listing(root).keys() == before.keys() | {fresh.name}
 
 
+def test_table1_rows_measured_on_the_cluster_match_the_in_process_rows(cluster, cache, tmp_path, monkeypatch):
+    """The report's per-scene sweep (Table 1) as units: same counts and agreement, each row once."""
+    import warnings as warnings_
+
+    from reports import table1
+    from reports.notes import ReportNote
+
+    config = load_config()
+    small = dataclasses.replace(config.profile("quick"), scenes=("cbox-empty", "cbox-original"),
+                                agreement_rays_per_kind=2000, timing_rays=2000, frame_width=16, frame_height=16,
+                                frame_spp=1)
+    config = dataclasses.replace(config, profiles={"tiny": small})
+    with warnings_.catch_warnings():
+        warnings_.simplefilter("ignore")
+        local = {m.name: m.value for m in table1.generate(config, "tiny", tmp_path / "local", progress=False)}
+        monkeypatch.setenv(distributed.SCHEDULER_ENV, cluster.scheduler.address)
+        remote = {m.name: m.value for m in table1.generate(config, "tiny", tmp_path / "remote", progress=False)}
+    assert local.keys() == remote.keys() and len(local) == 12
+    exact = [name for name in local if not name.endswith(("_primary", "_incoherent", "_frame"))]
+    assert {name: remote[name] for name in exact} == {name: local[name] for name in exact}
+    assert remote["table1/cbox-original/triangle_references_local"] == 107
+    workers = set(cluster.scheduler_info()["workers"])
+    rows = table1.load_rows(config, "tiny", tmp_path / "remote")
+    assert all(row["worker"] in workers and row["threads"] == 1 for row in rows)
+    with pytest.warns(ReportNote, match="reused 2 of 2 scene rows"):  # a rerun submits no unit
+        table1.generate(config, "tiny", tmp_path / "remote", progress=False)
+
+
 def test_a_killed_worker_s_view_is_rendered_elsewhere(cluster, tmp_path, monkeypatch):
     """SIGKILL a worker while it renders a view: the dataset still completes, identical and without duplicates."""
     slow = dataclasses.replace(QUICK, positions=3, width=96, height=96, reference_spp=128)
