@@ -25,7 +25,12 @@ name        operation                                               scale       
 ==========  =====================================================  ==========  ==========
 
 Total 1,760 + 10 × 9,248 + 867 = 95,107. Each encoder block's output (before pooling)
-is added to the output of the decoder block at the same resolution. With the optional
+is added to the output of the decoder block at the same resolution.
+
+Residual form (default, ``residual=True``): the output is the HDR-encoded noisy colour
+plus ``out`` (a parameter-free skip; the count stays 95,107), and ``out`` starts at zero,
+so an untrained denoiser returns its noisy input exactly and training departs from there.
+The paper's net predicts the clean image directly (``residual=False``). With the optional
 auxiliary normal and depth inputs (``auxiliary=("albedo", "normal", "depth")``, 10 input
 channels) only ``inc`` grows, to 10·32·9 + 32 = 2,912, giving 96,259 parameters.
 
@@ -84,9 +89,12 @@ class Denoiser(nn.Module):
         ``("albedo", "normal", "depth")`` with ``"albedo"`` (the paper's diffuse map).
         ``("albedo",)`` gives the paper's 6-channel, 95,107-parameter network;
         ``("albedo", "normal", "depth")`` the 10-channel, 96,259-parameter variant.
+    residual : bool
+        Predict a correction added to the encoded noisy colour, starting from the
+        identity (default), or the clean image directly as the paper does.
     """
 
-    def __init__(self, auxiliary: tuple[str, ...] = ("albedo",)) -> None:
+    def __init__(self, auxiliary: tuple[str, ...] = ("albedo",), residual: bool = True) -> None:
         super().__init__()
         auxiliary = tuple(auxiliary)
         order = tuple(name for name in AUXILIARY_CHANNELS if name in auxiliary)
@@ -100,11 +108,15 @@ class Denoiser(nn.Module):
         self.encoders = nn.ModuleList(nn.Conv2d(FILTERS, FILTERS, 3, padding=1) for _ in range(DEPTH))
         self.decoders = nn.ModuleList(nn.Conv2d(FILTERS, FILTERS, 3, padding=1) for _ in range(DEPTH))
         self.out = nn.Conv2d(FILTERS, 3, 3, padding=1)
+        self.residual = bool(residual)
+        if self.residual:
+            nn.init.zeros_(self.out.weight)
+            nn.init.zeros_(self.out.bias)
 
     @property
     def config(self) -> dict:
         """Constructor arguments and identity, for checkpoints: ``Denoiser(**config["kwargs"])``."""
-        return {"architecture": "Denoiser", "kwargs": {"auxiliary": list(self.auxiliary)}}
+        return {"architecture": "Denoiser", "kwargs": {"auxiliary": list(self.auxiliary), "residual": self.residual}}
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """Denoise a batch.
@@ -122,6 +134,7 @@ class Denoiser(nn.Module):
         """
         _check_batch(x, self.in_channels, "Denoiser")
         height, width = x.shape[-2:]
+        noisy = x[:, :3]
         pad_h, pad_w = (-height) % POOLING_MULTIPLE, (-width) % POOLING_MULTIPLE
         if pad_h or pad_w:
             x = F.pad(x, (0, pad_w, 0, pad_h), mode="replicate")
@@ -133,7 +146,8 @@ class Denoiser(nn.Module):
             x = F.max_pool2d(x, 2)
         for conv, skip in zip(reversed(self.decoders), reversed(skips)):
             x = F.relu(conv(F.interpolate(x, scale_factor=2, mode="nearest"))) + skip
-        return self.out(x)[..., :height, :width]
+        correction = self.out(x)[..., :height, :width]
+        return noisy + correction if self.residual else correction
 
 
 class Superresolution(nn.Module):

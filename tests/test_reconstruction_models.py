@@ -38,7 +38,9 @@ def _randomise(layer: torch.nn.Conv2d) -> None:
 @pytest.fixture(scope="module")
 def denoiser() -> Denoiser:
     torch.manual_seed(0)
-    return Denoiser().eval()
+    model = Denoiser()
+    _randomise(model.out)  # zero-initialised, i.e. the identity: tiling would pass trivially
+    return model.eval()
 
 
 @pytest.fixture(scope="module")
@@ -47,6 +49,16 @@ def sr_net() -> Superresolution:
     model = Superresolution()
     _randomise(model.layers[-1])  # zero-initialised, i.e. exactly bicubic: tiling would pass trivially
     return model.eval()
+
+
+def test_untrained_residual_denoiser_returns_its_noisy_input_and_the_direct_form_does_not():
+    x = torch.rand(2, 6, 40, 24)
+    with torch.inference_mode():
+        assert torch.equal(Denoiser()(x), x[:, :3])
+        direct = Denoiser(residual=False)(x)
+    assert direct.shape == (2, 3, 40, 24) and not torch.allclose(direct, x[:, :3], atol=1e-3)
+    assert count_parameters(Denoiser(residual=False)) == count_parameters(Denoiser()) == 95_107
+    assert Denoiser(residual=False).config != Denoiser().config  # a checkpoint of one is refused by the other
 
 
 def test_parameter_counts_match_the_paper():
@@ -134,8 +146,15 @@ def test_loss_weights_and_gradient():
     loss_fn = EdgeAwareLoss(1.0)
     loss = loss_fn(prediction, target)
     mse = torch.mean((prediction - target) ** 2)
-    edge = torch.mean((normalise_edges(loss_fn.log(prediction)) - normalise_edges(loss_fn.log(target))) ** 2)
-    assert loss.item() == pytest.approx((0.7 * mse + 0.3 * edge).item(), rel=1e-6)
+    log_p, log_t = (torch.from_numpy(np.stack([[gaussian_laplace(c, 1.0, mode="nearest") for c in image]
+                                                for image in x.detach().numpy().astype(np.float64)])).float()
+                    for x in (prediction, target))
+    low, high = log_t.amin(dim=(-2, -1), keepdim=True), log_t.amax(dim=(-2, -1), keepdim=True)
+    edge = torch.mean(((log_p - low) / (high - low) - (log_t - low) / (high - low)) ** 2)  # target's range for both
+    assert loss.item() == pytest.approx((0.7 * mse + 0.3 * edge).item(), rel=1e-4)
+    # a contrast error is an edge error too (independently normalised maps would be identical)
+    doubled_edge_term = loss_fn(2 * target, target) - 0.7 * torch.mean(target**2)
+    assert doubled_edge_term.item() > 0.3 * 0.01
     loss.backward()
     assert torch.isfinite(prediction.grad).all() and prediction.grad.abs().sum() > 0
     assert loss_fn(target, target).item() == 0.0

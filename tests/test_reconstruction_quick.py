@@ -9,10 +9,9 @@ for training or for choosing the kept epoch, which uses the validation split):
   pooled over the test views (OIDN is reported beside it, not asserted);
 * the superresolution net must beat bicubic (pooled PSNR, strictly) on the held-out
   photo test set (:data:`reconstruction.evaluate.TEST_PHOTOS`, whole images) and on
-  the scene's test view — the latter an expected failure on this scene's single, nearly
-  featureless test view (see the marker).
+  the scene's test views.
 
-The measured numbers are printed (``pytest -s`` or ``-rP`` shows them). About a minute
+The measured numbers are printed (``pytest -s`` or ``-rP`` shows them). About two minutes
 on 2 idle cores; much longer when other processes compete for the cores (22 minutes
 measured with four other CPU-bound processes on the 2 cores).
 """
@@ -74,11 +73,6 @@ def test_denoiser_beats_the_noisy_input_on_test_views(trained):
     assert gain >= DENOISER_MARGIN_DB, results
 
 
-@pytest.mark.xfail(raises=AssertionError, strict=True, reason=(
-    "measured 2026-11-22, quick profile: the one test view of cbox-original is nearly featureless "
-    "(bicubic already 45.42 dB) and the net loses 1.12 dB there (44.30 dB), while it gains +2.6 dB on the "
-    "validation view and +0.11 dB over bicubic on the held-out photo test set (32.83 vs 32.72 dB, "
-    "test_superresolution_beats_bicubic_on_the_held_out_photos); not tuned on the test split"))
 def test_superresolution_beats_bicubic_on_test_views(trained):
     results = evaluate.superres_quality(trained["superres"].model, trained["dataset"], "test",
                                         PROFILE.superres_downsample)
