@@ -126,6 +126,12 @@ class EdgeAwareLoss(nn.Module):
         super().__init__()
         self.log = LaplacianOfGaussian(sigma)
 
+    @property
+    def config(self) -> dict:
+        """What defines this loss, for the cache key of models trained with it."""
+        return {"loss": "EdgeAwareLoss", "sigma": self.log.sigma, "mse_weight": MSE_WEIGHT,
+                "edge_normalisation": "target range", "range_floor": EDGE_RANGE_FLOOR}
+
     def forward(self, prediction: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
         """Scalar loss of batches shaped (N, C, H, W) (same shape, finite)."""
         if prediction.shape != target.shape:

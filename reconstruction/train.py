@@ -17,7 +17,7 @@ another architecture, a foreign or corrupt file, with a ``ValueError``.
 
 Entry points: :func:`train_denoiser` (one scene: the Precision Graphics model; several:
 the mixed model), :func:`train_superres`, :func:`evaluate`. The training folder is
-``cache_root()/models/<kind>-<key>`` where the key hashes the architecture, the data
+``cache_root()/models/<kind>-<key>`` where the key hashes the architecture, the loss, the data
 hash and the optimisation settings (not the epoch count, so raising ``epochs`` resumes).
 """
 
@@ -356,8 +356,11 @@ def _resolve(profile: str | ReconstructionProfile) -> ReconstructionProfile:
     return DEFAULT_CONFIG.reconstruction.profile(profile) if isinstance(profile, str) else profile
 
 
-def _training_dir(kind: str, model: nn.Module, data_hash: str, profile: ReconstructionProfile) -> Path:
-    key = content_key(kind, architecture(model), parameter_count(model), data_hash, profile.batch_size,
+def _training_dir(kind: str, model: nn.Module, loss_fn: nn.Module, data_hash: str,
+                  profile: ReconstructionProfile) -> Path:
+    # the loss is part of the identity: the same net and data trained on another loss is another model
+    loss = getattr(loss_fn, "config", None) or type(loss_fn).__name__
+    key = content_key(kind, architecture(model), parameter_count(model), loss, data_hash, profile.batch_size,
                       profile.learning_rate, profile.seed)
     return cache_root() / "models" / f"{kind}-{key[:24]}"
 
@@ -464,7 +467,7 @@ def train_denoiser(scene_names: list[str] | tuple[str, ...], profile: str | Reco
         from reconstruction.loss import DENOISER_SIGMA, EdgeAwareLoss
 
         loss_fn = EdgeAwareLoss(DENOISER_SIGMA)
-    directory = _training_dir("denoiser", model, data_hash, profile) if directory is None else Path(directory)
+    directory = _training_dir("denoiser", model, loss_fn, data_hash, profile) if directory is None else Path(directory)
     result = fit(model, loss_fn, data, directory, data_hash, profile.epochs, profile.batch_size,
                  profile.learning_rate, profile.seed, decode, psnr, progress)
     _write_result(result, evaluate(result.model, data["test"], loss_fn, decode, psnr), list(scene_names), profile)
@@ -525,7 +528,7 @@ def train_superres(profile: str | ReconstructionProfile = "quick", scene_names: 
         from reconstruction.loss import SUPERRESOLUTION_SIGMA, EdgeAwareLoss
 
         loss_fn = EdgeAwareLoss(SUPERRESOLUTION_SIGMA)
-    directory = _training_dir("superres", model, data_hash, profile) if directory is None else Path(directory)
+    directory = _training_dir("superres", model, loss_fn, data_hash, profile) if directory is None else Path(directory)
     result = fit(model, loss_fn, data, directory, data_hash, profile.epochs, profile.batch_size,
                  profile.learning_rate, profile.seed, _identity, psnr, progress)
     if "test" in data:
