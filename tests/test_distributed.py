@@ -24,7 +24,9 @@ from kdtrace.config import DEFAULT_CONFIG, load_config
 from kdtrace.scenes import load_scene
 from reconstruction import data
 
-QUICK = DEFAULT_CONFIG.reconstruction.profile("quick")
+#: The quick profile with 2 camera positions (8 candidate views): enough for identity and fault
+#: tests, at half the rendering of the real quick profile (CI time).
+QUICK = dataclasses.replace(DEFAULT_CONFIG.reconstruction.profile("quick"), positions=2)
 SCENE = "cbox-original"
 #: Volatile fields of a view record: who rendered it and how long it took.
 VOLATILE = ("worker", "unit_seconds", "noisy_seconds", "reference_seconds")
@@ -120,7 +122,7 @@ def test_two_clients_at_once_render_each_view_once(cluster, cache):
 def test_dataset_command_on_an_existing_scheduler(cluster, cache, capsys):
     assert main(["dataset", SCENE, "--scheduler", cluster.scheduler.address]) == 0
     printed = capsys.readouterr().out
-    dataset = data.generate_dataset(SCENE, QUICK, progress=False)  # a cache hit now
+    dataset = data.generate_dataset(SCENE, DEFAULT_CONFIG.reconstruction.profile("quick"), progress=False)  # a cache hit now
     assert {view["worker"] for view in dataset.manifest["views"]} <= set(cluster.scheduler_info()["workers"])
     accepted = sum(view["accepted"] for view in dataset.manifest["views"])
     assert f"{accepted} of {len(dataset.manifest['views'])} views accepted" in printed
