@@ -180,6 +180,11 @@ def _row_path(out_dir: Path, name: str) -> Path:
     return Path(out_dir) / "rows" / f"{name}.json"
 
 
+def _write_record(out_dir: Path, name: str, record: dict) -> None:
+    """Save one scene's record atomically, as soon as it is measured (resumable runs)."""
+    atomic_write_bytes(_row_path(out_dir, name), json.dumps(record, indent=1).encode())
+
+
 def measure_record(name: str, config: Config, profile_name: str, progress: tqdm) -> dict:
     """Measure one scene's row on this process's threads: ``{key, threads, measured_at, row}``."""
     threads = numba.get_num_threads()
@@ -269,12 +274,12 @@ def generate(config: Config, profile_name: str, out_dir: Path, fresh: bool = Fal
                                                    config=config.distributed)):
             records[name] = result.value
             records[name]["row"]["worker"] = result.worker
-            atomic_write_bytes(_row_path(out_dir, name), json.dumps(records[name], indent=1).encode())
+            _write_record(out_dir, name, records[name])
     else:
         bar = tqdm(missing, unit="scene", desc=f"Table 1 ({profile_name})", disable=not progress)
         for name in bar:
             records[name] = measure_record(name, config, profile_name, bar)
-            atomic_write_bytes(_row_path(out_dir, name), json.dumps(records[name], indent=1).encode())
+            _write_record(out_dir, name, records[name])
     rows = [records[name]["row"] for name in names]
     if reused:
         message = f"Table 1: reused {len(reused)} of {len(names)} scene rows measured earlier: {', '.join(reused)} (--fresh measures again)"
