@@ -12,6 +12,7 @@ import argparse
 import os
 import sys
 import time
+import warnings
 from pathlib import Path
 
 from tabulate import tabulate
@@ -171,6 +172,7 @@ def build_parser() -> argparse.ArgumentParser:
     defaults = load_config()
     parser = argparse.ArgumentParser(prog="kdtrace", description=__doc__.splitlines()[0])
     parser.add_argument("--config", help="TOML file overriding kdtrace/defaults.toml")
+    parser.add_argument("--quiet", action="store_true", help="do not print warnings")
     sub = parser.add_subparsers(dest="command", required=True)
 
     sub.add_parser("scenes", help="list the scene descriptions with their counts").set_defaults(run=_scenes)
@@ -260,16 +262,42 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _show_warnings_as_lines(quiet: bool) -> None:
+    """Print each distinct warning once, as ``warning: MESSAGE`` on stderr; none when ``quiet``.
+
+    Call inside :class:`warnings.catch_warnings`, which restores the filters and
+    ``warnings.showwarning``. Scene warnings carry ``FILE:LINE:`` in their message, so
+    a message repeated by a second load of the same file (or a cache hit) is shown once.
+    """
+    if quiet:
+        warnings.simplefilter("ignore")
+        return
+    from kdtrace.io import SceneWarning
+
+    warnings.simplefilter("always", SceneWarning)  # repeats are dropped below, by message
+    shown: set[str] = set()
+
+    def show(message, category, filename, lineno, file=None, line=None) -> None:
+        text = str(message) if issubclass(category, SceneWarning) else f"{category.__name__}: {message}"
+        if text not in shown:
+            shown.add(text)
+            tqdm.write(f"warning: {text}", file=sys.stderr)  # above any progress bar
+
+    warnings.showwarning = show
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    try:
-        config = load_config(args.config)
-        if getattr(args, "profile", None):
-            config.profile(args.profile)  # unknown names fail before any work
-        return args.run(args, config)
-    except (ValueError, FileNotFoundError) as error:
-        print(f"kdtrace: error: {error}", file=sys.stderr)
-        return 2
+    with warnings.catch_warnings():
+        _show_warnings_as_lines(args.quiet)
+        try:
+            config = load_config(args.config)
+            if getattr(args, "profile", None):
+                config.profile(args.profile)  # unknown names fail before any work
+            return args.run(args, config)
+        except (ValueError, FileNotFoundError) as error:
+            print(f"kdtrace: error: {error}", file=sys.stderr)
+            return 2
 
 
 if __name__ == "__main__":
