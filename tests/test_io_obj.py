@@ -13,6 +13,10 @@ import pytest
 from kdtrace.io import SceneError, SceneWarning, cache_directory, load_mesh
 from kdtrace.io.mtl import read_mtl
 from kdtrace.io.obj import read_obj
+from kdtrace.scene import Material
+
+#: Small OBJ files modelled on other loaders' bug reports (each cites them at its top).
+DATA = Path(__file__).parent / "data" / "obj"
 
 # (file, triangles) from ../shared/scenes/README.md
 REAL_OBJS = [
@@ -60,6 +64,10 @@ def independent_obj_summary(path: Path) -> tuple[int, float, Counter]:
 def write(path: Path, text: str, newline: str = "\n") -> Path:
     path.write_bytes(text.replace("\n", newline).encode())
     return path
+
+
+def messages(record) -> list[str]:
+    return [str(w.message) for w in record]
 
 
 def quiet_read(path: Path):
@@ -262,6 +270,117 @@ def test_obj_without_mtllib_gets_one_default_material_per_usemtl(tmp_path):
     assert all(m.kind == "diffuse" and not m.is_emitter for m in scene.materials)
 
 
+# ------------------------------------------- files other loaders read: load with a warning
+def test_missing_mtl_file_warns_and_gives_default_materials():
+    path = DATA / "missing_mtl.obj"
+    with pytest.warns(SceneWarning) as record:
+        scene = read_obj(path)
+    assert messages(record) == [
+        f"{path}:7: material library 'missing_mtl.mtl' not found in {DATA}; its materials get a default grey diffuse"
+    ]
+    assert len(scene.triangles) == 3
+    assert [scene.materials[i].name for i in scene.material_ids] == ["wood", "wood", "metal"]
+    assert scene.materials == [Material("wood"), Material("metal")]
+
+
+def test_several_mtllibs_load_those_found_first_definition_wins():
+    path = DATA / "several_mtllibs.obj"
+    with pytest.warns(SceneWarning) as record:
+        scene = read_obj(path)
+    assert messages(record) == [  # the repeated mtllib line neither warns again nor reads the files again
+        f"{path}:10: material library 'several_c.mtl' not found in {DATA}; its materials get a default grey diffuse",
+        f"{DATA / 'several_b.mtl'}:5: unknown MTL key 'Pe' ignored",
+        f"{path}:21: material 'nowhere' is not defined in several_a.mtl, several_b.mtl; "
+        "using a default grey diffuse material",
+    ]
+    by_triangle = [scene.materials[i] for i in scene.material_ids]
+    assert [m.name for m in by_triangle] == ["red", "lamp", "shared", "nowhere"]
+    assert by_triangle[0].albedo == (0.8, 0.1, 0.1)  # several_a.mtl
+    assert by_triangle[1].emission == (10.0, 10.0, 10.0)  # several_b.mtl
+    assert by_triangle[2].albedo == (0.1, 0.8, 0.1)  # several_a.mtl's, not several_b.mtl's (0.1, 0.1, 0.8)
+    assert by_triangle[3] == Material("nowhere")
+
+
+@pytest.mark.parametrize("file", ["mtllib_name_with_space.obj", "mtllib_name_escaped.obj"])
+def test_mtl_file_name_with_a_space(file):
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        scene = read_obj(DATA / file)
+    assert [m.name for m in scene.materials] == ["stone"] and scene.materials[0].albedo == (0.6, 0.6, 0.5)
+
+
+def test_mtl_name_with_spaces_found_under_no_reading_warns_naming_both(tmp_path):
+    path = write(tmp_path / "a.obj", "mtllib my lib.mtl\n" + TRIANGLE + "usemtl x\nf 1 2 3\n")
+    with pytest.warns(SceneWarning) as record:
+        scene = read_obj(path)
+    assert messages(record) == [
+        f"{path}:1: material library 'my', 'lib.mtl' not found in {tmp_path} (nor 'my lib.mtl' as one name); "
+        "its materials get a default grey diffuse"
+    ]
+    assert scene.materials == [Material("x")]
+
+
+def test_texture_coordinates_the_file_does_not_define_are_dropped():
+    path = DATA / "vt_undefined.obj"
+    with pytest.warns(SceneWarning) as record:
+        scene = read_obj(path)
+    assert messages(record) == [
+        f"{path}:9: texture coordinate index 1 is out of range (the file has no texture coordinate elements); "
+        "dropped the texture coordinates of 2 face(s) with invalid indices, kept their triangles"
+    ]
+    assert len(scene.triangles) == 2 and scene.texcoords is None
+    np.testing.assert_array_equal(scene.normals, [[0, 0, 1]] * len(scene.vertices))
+
+
+def test_normals_the_file_does_not_define_are_dropped():
+    path = DATA / "vn_undefined.obj"
+    with pytest.warns(SceneWarning, match=re.escape(f"{path}:14: normal index 1 is out of range")) as record:
+        scene = read_obj(path)
+    assert len(record) == 1 and "dropped the normals of 1 face(s)" in messages(record)[0]
+    assert len(scene.triangles) == 2 and scene.normals is None
+    np.testing.assert_array_equal(scene.texcoords, [[0, 0], [1, 0], [1, 1], [0, 1]])
+
+
+def test_out_of_range_attribute_indices_drop_that_attribute_of_the_whole_face():
+    path = DATA / "attribute_index_out_of_range.obj"
+    with pytest.warns(SceneWarning) as record:
+        scene = read_obj(path)
+    assert messages(record) == [
+        f"{path}:20: texture coordinate index 100 is out of range (the file has 3 texture coordinate elements); "
+        "dropped the texture coordinates of 1 face(s) and the normals of 1 face(s) with invalid indices, "
+        "kept their triangles"
+    ]
+    assert len(scene.triangles) == 3
+    texcoords, normals = scene.texcoords[scene.triangles], scene.normals[scene.triangles]
+    assert texcoords[0].tolist() == [[0, 0], [1, 0], [0, 1]]
+    assert texcoords[1].tolist() == [[0, 0]] * 3  # not vt 1 and vt 3 on the valid corners
+    assert texcoords[2].tolist() == [[0, 0], [1, 0], [0, 1]]
+    np.testing.assert_allclose(normals[1], [[0, 0.6, 0.8]] * 3, atol=1e-6)
+    assert normals[2].tolist() == [[0, 0, 1]] * 3  # geometric, not vn 2 on the two valid corners
+
+
+def test_index_zero_of_a_normal_is_dropped_with_the_reason(tmp_path):
+    path = write(tmp_path / "a.obj", TRIANGLE + "vn 0 1 0\nf 1//1 2//0 3//1\n")
+    with pytest.warns(SceneWarning, match=re.escape(f"{path}:5: normal index 0 is invalid (OBJ indices start at 1)")):
+        scene = read_obj(path)
+    assert len(scene.triangles) == 1 and scene.normals is None
+
+
+# ----------------------------------------------------- files broken beyond use: refused
+@pytest.mark.parametrize(
+    ("file", "message"),
+    [
+        ("nan_vertex.obj", ":6: 'v' has a NaN or infinite value"),
+        ("vertex_index_out_of_range.obj", ":11: vertex index 999999 is out of range (the file has 3 vertex"),
+        ("no_faces.obj", ": the mesh has no faces"),
+    ],
+)
+def test_broken_files_are_refused_naming_file_and_line(file, message):
+    path = DATA / file
+    with pytest.raises(SceneError, match=re.escape(f"{path}{message}")):
+        quiet_read(path)
+
+
 # ------------------------------------------------------------------------------ errors
 TRIANGLE = "v 0 0 0\nv 1 0 0\nv 0 1 0\n"
 BAD_OBJS = {
@@ -276,10 +395,7 @@ BAD_OBJS = {
     "index zero": (TRIANGLE + "f 0 1 2\n", 4, "index 0"),
     "index too large": (TRIANGLE + "f 1 2 3\nf 1 2 4\n", 5, "index 4 is out of range"),
     "relative index too far": (TRIANGLE + "f -1 -2 -4\n", 4, "relative index -4"),
-    "texcoord out of range": (TRIANGLE + "vt 0 0\nf 1/1 2/2 3/1\n", 5, "texture coordinate index 2"),
-    "normal out of range": (TRIANGLE + "vn 0 0 1\nf 1//1 2//1 3//-2\n", 5, "normal relative index -2"),
     "bad normal": (TRIANGLE + "vn 0 0\nf 1 2 3\n", 4, "'vn' needs 3"),
-    "missing mtllib": ("mtllib nowhere.mtl\n" + TRIANGLE + "f 1 2 3\n", 1, "material library not found"),
     "usemtl without name": (TRIANGLE + "usemtl\nf 1 2 3\n", 4, "'usemtl' without"),
 }
 
@@ -346,6 +462,16 @@ def test_cache_hit_returns_identical_arrays_and_replays_warnings(tmp_path, isola
     assert hot.content_hash() == cold.content_hash()
 
 
+def test_cache_key_follows_a_missing_mtl_file_named_with_a_space(tmp_path, isolated_cache):
+    path = write(tmp_path / "a.obj", "mtllib my lib.mtl\n" + TRIANGLE + "usemtl a\nf 1 2 3\n")
+    with pytest.warns(SceneWarning, match="not found"):
+        assert load_mesh(path).materials == [Material("a")]
+    write(tmp_path / "my lib.mtl", "newmtl a\nKd 0.7 0.7 0.7\n")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert load_mesh(path).materials[0].albedo == (0.7, 0.7, 0.7)
+
+
 def test_cache_key_follows_the_mtl_file(tmp_path, isolated_cache):
     write(tmp_path / "m.mtl", "newmtl a\nKd 0.1 0.1 0.1\n")
     path = write(tmp_path / "a.obj", "mtllib m.mtl\n" + TRIANGLE + "usemtl a\nf 1 2 3\n")
@@ -354,3 +480,23 @@ def test_cache_key_follows_the_mtl_file(tmp_path, isolated_cache):
     assert load_mesh(path).materials[0].albedo == (0.7, 0.7, 0.7)
     assert len(list(cache_directory().glob("*.npz"))) == 2
     assert not list(cache_directory().glob("*.tmp*"))
+
+
+# ------------------------------------------------------------------------ command line
+def test_cli_prints_each_warning_once_as_one_line_and_quiet_silences_them(tmp_path, isolated_cache, capsys):
+    from kdtrace.cli import main
+
+    obj = DATA / "several_mtllibs.obj"
+    scene = write(tmp_path / "twice.toml", f'[[mesh]]\nfile = "{obj}"\n[[mesh]]\nfile = "{obj}"\n')  # 2nd: cache hit
+    assert main(["build", str(scene), "--variant", "naive"]) == 0
+    err = capsys.readouterr().err
+    assert [line for line in err.splitlines() if "warning" in line.lower()] == [
+        f"warning: {obj}:10: material library 'several_c.mtl' not found in {DATA}; "
+        "its materials get a default grey diffuse",
+        f"warning: {DATA / 'several_b.mtl'}:5: unknown MTL key 'Pe' ignored",
+        f"warning: {obj}:21: material 'nowhere' is not defined in several_a.mtl, several_b.mtl; "
+        "using a default grey diffuse material",
+    ]
+    assert "SceneWarning" not in err and "warnings.warn" not in err  # not Python's two-line format
+    assert main(["--quiet", "build", str(scene), "--variant", "naive"]) == 0
+    assert "warning" not in capsys.readouterr().err.lower()

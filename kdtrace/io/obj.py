@@ -3,9 +3,24 @@
 Supported: ``v`` (x y z, an optional w or r g b ignored), ``vt`` (u [v [w]]; w ignored,
 a missing v is 0), ``vn``, faces ``f`` in the forms ``v``, ``v/vt``, ``v//vn`` and
 ``v/vt/vn`` (one form per face), negative indices relative to the elements read so far,
-polygons triangulated as fans, ``usemtl``, ``mtllib`` (paths relative to the OBJ),
-comments (whole-line and trailing), blank lines, and LF, CRLF or CR line ends. ``o``,
-``g``, ``s``, ``l`` and ``p`` are ignored; other keywords warn once per file.
+polygons triangulated as fans, ``usemtl``, ``mtllib`` (see below), comments (whole-line
+and trailing), blank lines, and LF, CRLF or CR line ends. ``o``, ``g``, ``s``, ``l`` and
+``p`` are ignored; other keywords warn once per file.
+
+Lenient where the data is usable, as tinyobjloader, trimesh and Blender are (each case
+warns once per file, naming file and line):
+
+* ``mtllib`` lists one or more file names, relative to the OBJ, separated by blanks;
+  ``\\ `` escapes a blank inside a name. When those files do not all exist but the whole
+  rest of the line names one that does (``mtllib Peaches Castle.mtl``, as Blender 2.79
+  writes it), that file is read. Files that are not found are reported and skipped:
+  their materials get the default grey diffuse.
+* A face whose ``vt`` (or ``vn``) index is 0, out of range or refers to an element the
+  file does not define loses its texture coordinates (or normals), not its triangles;
+  one warning counts such faces.
+
+Refused (:class:`kdtrace.io.SceneError` naming file and line): a malformed line, a NaN
+or infinite value, a vertex index out of range, a file without faces or triangles.
 
 Output conventions:
 
@@ -20,11 +35,13 @@ Output conventions:
 * A face with 2 vertices (an edge, as Blender writes them) gives no triangle and one
   warning per file; a face with fewer vertices is an error.
 * Zero-area triangles are kept.
-* Materials: with ``mtllib``, each ``usemtl`` name is looked up in the libraries
-  (:mod:`kdtrace.io.mtl`); an unknown name, or faces before any ``usemtl``, get a
-  default grey diffuse material and a warning. Without ``mtllib``, each ``usemtl`` name
-  gets a default diffuse material of that name and faces without one get ``"default"``.
-  The material table lists the materials in order of first use.
+* Materials: when a material library was read, each ``usemtl`` name is looked up in the
+  libraries in the order of the ``mtllib`` lines and names (the first definition wins;
+  :mod:`kdtrace.io.mtl`); an unknown name, or faces before any ``usemtl``, get a default
+  grey diffuse material and a warning. When none was read (no ``mtllib``, or none of its
+  files found), each ``usemtl`` name gets a default diffuse material of that name and
+  faces without one get ``"default"``. The material table lists the materials in order
+  of first use.
 """
 
 from __future__ import annotations
@@ -57,6 +74,7 @@ _FORM_FIELDS = {_FORM_V: 1, _FORM_V_VT: 2, _FORM_V_VN: 2, _FORM_V_VT_VN: 3}
 _FORM_NAMES = {_FORM_V: "v", _FORM_V_VT: "v/vt", _FORM_V_VN: "v//vn", _FORM_V_VT_VN: "v/vt/vn"}
 _VALUE_COUNTS = {"v": (3, 4, 6), "vt": (1, 2, 3), "vn": (3,)}
 _MTLLIB_LINE = re.compile(rb"^[ \t]*mtllib[ \t]+([^\r\n#]*)", re.MULTILINE)
+_UNESCAPED_BLANKS = re.compile(r"(?<!\\)[ \t]+")
 
 
 def _face_form(corner: str) -> int:
@@ -226,30 +244,91 @@ def _convert_faces(found: _Lines, path: Path) -> tuple[np.ndarray, np.ndarray, n
     return raw, counts, forms
 
 
-def _resolve(raw: np.ndarray, defined_so_far: np.ndarray, total: int, present: np.ndarray, kind: str, corner_line: np.ndarray, path: Path) -> np.ndarray:
-    """0-based indices from OBJ indices (1-based, or negative = relative); -1 where absent."""
+def _resolve(
+    raw: np.ndarray, defined_so_far: np.ndarray, total: int, present: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """0-based indices from OBJ indices (1-based, or negative = relative).
+
+    Returns the indices (-1 where absent or invalid) and the mask of the corners whose
+    index is present but 0 or outside the ``total`` elements.
+    """
     resolved = np.where(raw > 0, raw - 1, defined_so_far + raw)
     bad = present & ((raw == 0) | (resolved < 0) | (resolved >= total))
-    if bad.any():
+    return np.where(present & ~bad, resolved, -1), bad
+
+
+def _index_problem(index: int, defined_so_far: int, total: int, kind: str) -> str:
+    """What is wrong with the OBJ ``index`` of a ``kind`` element, for a message."""
+    if index == 0:
+        return f"{kind} index 0 is invalid (OBJ indices start at 1)"
+    if index < 0:
+        return f"{kind} relative index {index} reaches before the first {kind} ({defined_so_far} defined so far)"
+    return f"{kind} index {index} is out of range (the file has {total or 'no'} {kind} elements)"
+
+
+def _drop_invalid_attributes(
+    attributes: dict[str, tuple[np.ndarray, np.ndarray, int]],
+    raw: np.ndarray,
+    defined: np.ndarray,
+    corner_face: np.ndarray,
+    face_line: np.ndarray,
+    path: Path,
+    log: WarningLog,
+) -> dict[str, np.ndarray]:
+    """Texture coordinate / normal indices with every face that has an invalid one dropped.
+
+    Parameters
+    ----------
+    attributes : dict
+        ``{"texture coordinate": (indices, bad, total), "normal": ...}`` from
+        :func:`_resolve`, in the column order of ``raw`` (1, 2).
+    raw, defined : (C, 3) int arrays
+        OBJ indices of each corner and the element counts read before its face.
+    corner_face : (C,) int array
+        The face of each corner.
+    face_line : (F,) int array
+        The line of each face.
+
+    Returns
+    -------
+    The indices by kind, -1 on every corner of a face that had an invalid index of that
+    kind. One warning per file names the first invalid index and counts the faces.
+    """
+    kept: dict[str, np.ndarray] = {}
+    dropped: list[str] = []
+    first: tuple[int, str] | None = None
+    for column, (kind, (indices, bad, total)) in enumerate(attributes.items(), 1):
+        bad_face = np.zeros(len(face_line), dtype=bool)
+        bad_face[corner_face[bad]] = True
+        kept[kind] = np.where(bad_face[corner_face], -1, indices)
+        if not bad.any():
+            continue
+        dropped.append(f"the {kind}s of {int(bad_face.sum())} face(s)")
         corner = int(np.flatnonzero(bad)[0])
-        index = int(raw[corner])
-        if index == 0:
-            reason = "index 0 is invalid (OBJ indices start at 1)"
-        elif index < 0:
-            reason = f"relative index {index} reaches before the first {kind} ({int(defined_so_far[corner])} defined so far)"
-        else:
-            reason = f"index {index} is out of range (the file has {total} {kind} elements)"
-        raise SceneError(f"{path}:{int(corner_line[corner])}: {kind} {reason}")
-    return np.where(present, resolved, -1)
+        line = int(face_line[corner_face[corner]])
+        if first is None or line < first[0]:
+            first = (line, _index_problem(int(raw[corner, column]), int(defined[corner, column]), total, kind))
+    if first is not None:
+        log.warn(
+            "invalid attribute indices",
+            f"{path}:{first[0]}: {first[1]}; dropped {' and '.join(dropped)} with invalid indices, "
+            "kept their triangles",
+        )
+    return kept
 
 
 def _materials(found: _Lines, face_material: np.ndarray, path: Path, log: WarningLog) -> tuple[list[Material], np.ndarray]:
     """Material table (in order of first use) and each face's index into it."""
     library: dict[str, Material] = {}
     library_names: list[str] = []
-    for name, number in found.mtllibs:
-        for mtl_path in _mtllib_files(path, name, number):
-            library.update(parse_mtl(read_source(mtl_path), mtl_path, log))
+    read: set[Path] = set()
+    for rest, number in found.mtllibs:
+        for mtl_path in _mtllib_files(path, rest, number, log):
+            if mtl_path.resolve() in read:
+                continue  # some exporters repeat the same mtllib line for every object
+            read.add(mtl_path.resolve())
+            for name, material in parse_mtl(read_source(mtl_path), mtl_path, log).items():
+                library.setdefault(name, material)
             library_names.append(mtl_path.name)
     used = np.unique(face_material)
     table: list[Material] = []
@@ -276,16 +355,38 @@ def _materials(found: _Lines, face_material: np.ndarray, path: Path, log: Warnin
     return table, remap[face_material]
 
 
-def _mtllib_files(path: Path, name: str, number: int) -> list[Path]:
-    """The MTL files of an ``mtllib`` line: the whole name if it exists, else each word."""
-    whole = path.parent / name
-    if whole.is_file():
-        return [whole]
-    files = [path.parent / word for word in name.split()]
-    missing = [str(f) for f in files if not f.is_file()]
-    if missing:
-        raise SceneError(f"{path}:{number}: material library not found: {', '.join(missing)}")
-    return files
+def _mtllib_readings(rest: str) -> list[list[str]]:
+    """The ways to read the file names of an ``mtllib`` line, most likely first.
+
+    First the names separated by blanks (``\\ `` is a blank inside a name), then, when
+    that gives several names, the whole rest of the line as one name.
+    """
+    rest = rest.strip()
+    names = [name.replace("\\ ", " ") for name in _UNESCAPED_BLANKS.split(rest)]
+    return [names, [rest.replace("\\ ", " ")]] if len(names) > 1 else [names]
+
+
+def _mtllib_files(path: Path, rest: str, number: int, log: WarningLog) -> list[Path]:
+    """The existing MTL files of the ``mtllib`` line ``number``; the missing ones are reported.
+
+    The first reading of :func:`_mtllib_readings` whose files all exist is used; when
+    none does, the files of the first reading that exist, with a warning naming the
+    others.
+    """
+    readings = _mtllib_readings(rest)
+    for names in readings:
+        files = [path.parent / name for name in names]
+        if all(f.is_file() for f in files):
+            return files
+    found = [path.parent / name for name in readings[0] if (path.parent / name).is_file()]
+    missing = ", ".join(repr(name) for name in readings[0] if not (path.parent / name).is_file())
+    tried = f" (nor {readings[1][0]!r} as one name)" if len(readings) > 1 and not found else ""
+    log.warn(
+        f"mtllib {missing}",
+        f"{path}:{number}: material library {missing} not found in {path.parent}{tried}; "
+        "its materials get a default grey diffuse",
+    )
+    return found
 
 
 def parse_obj(data: bytes, path: Path, log: WarningLog | None = None) -> Scene:
@@ -303,8 +404,8 @@ def parse_obj(data: bytes, path: Path, log: WarningLog | None = None) -> Scene:
     Raises
     ------
     SceneError
-        Any malformed line, bad index, non-finite value, missing ``.mtl`` or a file
-        without faces; the message names the file and line.
+        Any malformed line, bad vertex index, non-finite value or a file without
+        faces; the message names the file and line.
     """
     log = log if log is not None else WarningLog()
     text = data.decode("utf-8", "surrogateescape").replace("\r\n", "\n").replace("\r", "\n")
@@ -322,14 +423,23 @@ def parse_obj(data: bytes, path: Path, log: WarningLog | None = None) -> Scene:
     raw, counts, forms = _convert_faces(found, path)
 
     corner_face = np.repeat(np.arange(len(counts)), counts)
-    corner_line = np.asarray(found.face_line, dtype=np.int64)[corner_face]
+    face_line = np.asarray(found.face_line, dtype=np.int64)
+    corner_line = face_line[corner_face]
     defined = np.asarray(found.face_defined, dtype=np.int64)[corner_face]
     corner_form = forms[corner_face]
+    v, bad_v = _resolve(raw[:, 0], defined[:, 0], len(positions), np.ones(len(raw), bool))
+    if bad_v.any():
+        corner = int(np.flatnonzero(bad_v)[0])
+        problem = _index_problem(int(raw[corner, 0]), int(defined[corner, 0]), len(positions), "vertex")
+        raise SceneError(f"{path}:{int(corner_line[corner])}: {problem}")
     has_vt = (corner_form == _FORM_V_VT) | (corner_form == _FORM_V_VT_VN)
     has_vn = (corner_form == _FORM_V_VN) | (corner_form == _FORM_V_VT_VN)
-    v = _resolve(raw[:, 0], defined[:, 0], len(positions), np.ones(len(raw), bool), "vertex", corner_line, path)
-    vt = _resolve(raw[:, 1], defined[:, 1], len(texcoords), has_vt, "texture coordinate", corner_line, path)
-    vn = _resolve(raw[:, 2], defined[:, 2], len(normals), has_vn, "normal", corner_line, path)
+    attributes = {
+        "texture coordinate": (*_resolve(raw[:, 1], defined[:, 1], len(texcoords), has_vt), len(texcoords)),
+        "normal": (*_resolve(raw[:, 2], defined[:, 2], len(normals), has_vn), len(normals)),
+    }
+    kept = _drop_invalid_attributes(attributes, raw, defined, corner_face, face_line, path, log)
+    vt, vn = kept["texture coordinate"], kept["normal"]
 
     corners_of_triangle, face_of_triangle = fan_triangulate(counts)
     if len(face_of_triangle) == 0:
@@ -346,12 +456,12 @@ def parse_obj(data: bytes, path: Path, log: WarningLog | None = None) -> Scene:
     triangles = vertex_of_corner[corners_of_triangle]
 
     vertex_normals = None
-    if len(normals) and has_vn.any():
+    if (vn >= 0).any():
         vn_first = vn[first]
         given = np.where(vn_first[:, None] >= 0, normals[np.maximum(vn_first, 0)], 0.0)
         vertex_normals = repair_normals(vertices, triangles, given, vn_first < 0)
     vertex_texcoords = None
-    if len(texcoords) and has_vt.any():
+    if (vt >= 0).any():
         vt_first = vt[first]
         vertex_texcoords = np.where(vt_first[:, None] >= 0, texcoords[np.maximum(vt_first, 0)], 0.0)
 
@@ -381,8 +491,8 @@ def load_obj(path: str | Path, *, use_cache: bool = True) -> Scene:
     data = read_source(path)
     sources: list[tuple[str, bytes | None]] = [("path", str(path.resolve()).encode()), ("obj", data)]
     for match in _MTLLIB_LINE.finditer(data):
-        name = match.group(1).decode("utf-8", "surrogateescape").strip()
-        for word in [name, *name.split()]:
-            candidate = path.parent / word
-            sources.append((f"mtl {word}", candidate.read_bytes() if candidate.is_file() else None))
+        for names in _mtllib_readings(match.group(1).decode("utf-8", "surrogateescape")):
+            for name in names:
+                candidate = path.parent / name
+                sources.append((f"mtl {name}", candidate.read_bytes() if candidate.is_file() else None))
     return cached_load(cache_key(sources), lambda log: parse_obj(data, path, log), use_cache)
