@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import reprlib
 import time
 import warnings
 from dataclasses import dataclass
@@ -114,7 +115,23 @@ class KDTree:
         return self._trace(origins, directions, tmin, tmax, False)
 
     def occluded(self, origins, directions, tmax, tmin=0.0):
-        """True for rays that hit anything with ``tmin < t < tmax`` (shadow rays)."""
+        """True for rays that hit anything with ``tmin < t < tmax`` (shadow rays).
+
+        Parameters
+        ----------
+        origins, directions : (N, 3) float arrays
+            Ray origins and directions.
+        tmax : float or (N,) array
+            End of each segment; required, unlike in :meth:`intersect`, because a shadow
+            ray that forgets its length would report the light itself, or anything behind
+            it, as a blocker. Pass ``np.inf`` to test whole rays.
+        tmin : float or (N,) array
+            Start of each segment.
+
+        Returns
+        -------
+        (N,) bool
+        """
         t, _, _, _ = self._trace(origins, directions, tmin, tmax, True)
         return np.isfinite(t)
 
@@ -122,10 +139,25 @@ class KDTree:
 def validate_rays(origins, directions, tmin=0.0, tmax=np.inf):
     """Check and convert a ray batch to contiguous float64 arrays.
 
+    Parameters
+    ----------
+    origins, directions : (N, 3) float arrays
+        Ray origins and directions.
+    tmin, tmax : float or (N,) array
+        Range of the ray parameter t; a float applies to every ray.
+
+    Returns
+    -------
+    origins, directions : (N, 3) float64
+    tmin, tmax : (N,) float64
+
     Raises
     ------
+    TypeError
+        tmin or tmax is None or not a number (or array of numbers).
     ValueError
-        Wrong shapes, NaN/inf origins or directions, zero directions, tmin < 0 or tmin > tmax.
+        Wrong shapes (the message gives the shape passed and the N expected), NaN/inf
+        origins or directions, zero directions, NaN tmin or tmax, tmin < 0 or tmin > tmax.
     """
     origins = np.ascontiguousarray(origins, dtype=np.float64)
     directions = np.ascontiguousarray(directions, dtype=np.float64)
@@ -138,10 +170,29 @@ def validate_rays(origins, directions, tmin=0.0, tmax=np.inf):
     if np.any(~directions.any(axis=1)):
         raise ValueError("ray directions must be non-zero")
     n = len(origins)
-    tmin = np.ascontiguousarray(np.broadcast_to(np.asarray(tmin, dtype=np.float64), (n,)))
-    tmax = np.ascontiguousarray(np.broadcast_to(np.asarray(tmax, dtype=np.float64), (n,)))
-    if np.any(np.isnan(tmin)) or np.any(np.isnan(tmax)) or np.any(tmin > tmax):
-        raise ValueError("tmin and tmax must be ordered numbers (tmin <= tmax)")
+    bounds = []
+    expected = f"a float or an array of shape ({n},), one value per ray"
+    usual = {"tmin": "0.0 to start at the origins", "tmax": "np.inf for rays without an end"}
+    for name, value in (("tmin", tmin), ("tmax", tmax)):
+        if value is None:
+            raise TypeError(f"{name} is required: {expected}, got None; pass {usual[name]}")
+        try:
+            array = np.asarray(value, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise TypeError(f"{name} must be {expected}, got {type(value).__name__} {reprlib.repr(value)}") from None
+        try:
+            array = np.broadcast_to(array, (n,))
+        except ValueError:
+            raise ValueError(f"{name} has shape {array.shape} but there are {n} rays; pass {expected}") from None
+        if np.isnan(array).any():
+            raise ValueError(f"{name} must be a number, got NaN for ray {np.flatnonzero(np.isnan(array))[0]}")
+        bounds.append(np.ascontiguousarray(array))
+    tmin, tmax = bounds
+    unordered = np.flatnonzero(tmin > tmax)
+    if len(unordered):
+        i = unordered[0]
+        raise ValueError(f"tmin must be <= tmax; ray {i} has tmin = {tmin[i]} > tmax = {tmax[i]} "
+                         f"({len(unordered)} of {n} rays are out of order)")
     if np.any(tmin < 0.0):
         raise ValueError("tmin must be >= 0: the traversal only visits the ray ahead of its origin")
     return origins, directions, tmin, tmax

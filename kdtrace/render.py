@@ -21,6 +21,8 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
+import os
+import sys
 import time
 import warnings
 from dataclasses import dataclass
@@ -84,6 +86,24 @@ def _positive_int(name: str, value) -> int:
     if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
         raise ValueError(f"{name} must be a positive integer, got {value!r}")
     return int(value)
+
+
+def _check_image_size(width: int, height: int, aux: bool) -> None:
+    """Refuse a resolution whose image buffers alone would not fit in physical memory."""
+    channels = 3 + 3 + (3 + 3 + 1 if aux else 0)  # rgb, variance; albedo, normal, depth
+    needed = width * height * channels * np.dtype(np.float32).itemsize
+    try:
+        memory = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+        where = "this machine's memory"
+    except (AttributeError, ValueError, OSError):  # no sysconf (Windows): numpy's own limit
+        memory = sys.maxsize
+        where = "the largest array numpy can allocate"
+    if needed > memory:
+        buffers = "rgb, variance, albedo, normal and depth" if aux else "rgb and variance"
+        raise ValueError(
+            f"width x height = {width} x {height} ({width * height:,} pixels) needs about "
+            f"{needed / 2**30:,.1f} GiB for the {buffers} buffers, more than {where} "
+            f"({memory / 2**30:,.1f} GiB); choose a smaller resolution")
 
 
 def _check_camera(camera: Camera) -> None:
@@ -278,8 +298,9 @@ def render(
     Raises
     ------
     ValueError
-        Non-positive spp, resolution or tile size, bad max_depth or seed, NaN in the
-        camera or a material, or ``features`` missing something the scene needs.
+        Non-positive spp, resolution or tile size, a resolution whose image buffers do
+        not fit in memory, bad max_depth or seed, NaN in the camera or a material, or
+        ``features`` missing something the scene needs.
 
     Warns
     -----
@@ -315,6 +336,7 @@ def render(
         if not needed <= chosen:
             raise ValueError(f"scene {scene.name!r} needs features {sorted(needed - chosen)}")
     aux = "aux" in chosen
+    _check_image_size(width, height, aux)
     tree = build_kdtree(scene, variant) if tree is None else tree
     packed = _pack(scene, tree)
     cam = _camera_array(camera, width, height)

@@ -380,7 +380,8 @@ def load_scene(
     Raises
     ------
     SceneError
-        Unknown name (the message lists the available ones), missing or malformed files.
+        Unknown name (the message lists the available ones), a directory (the message
+        lists the scene and mesh files inside it), missing or malformed files.
     """
     path = Path(name_or_path)
     suffix = path.suffix.lower()
@@ -390,6 +391,23 @@ def load_scene(
         mesh = load_mesh(find_file(path, search_path), use_cache=use_cache)
         return _finish(mesh, [], None)
     description = SCENES_DIRECTORY / f"{name_or_path}.toml"
-    if not description.is_file():
-        raise SceneError(f"unknown scene {str(name_or_path)!r}; available: {', '.join(list_scenes())}")
-    return _load_description(description, search_path, use_cache)
+    if description.is_file():
+        return _load_description(description, search_path, use_cache)
+    candidates = [path] if path.is_absolute() else [folder / path for folder in scene_search_path(search_path)]
+    folder = next((c for c in candidates if c.is_dir()), None)
+    if folder is not None:
+        raise SceneError(_directory_message(path, folder))
+    raise SceneError(f"unknown scene {str(name_or_path)!r}; available: {', '.join(list_scenes())}")
+
+
+def _directory_message(path: Path, folder: Path) -> str:
+    """Why a directory is not a scene, with the loadable files directly inside it as a hint."""
+    accepted = f"a scene name ({', '.join(list_scenes())}), a .toml description or an .obj/.ply mesh file"
+    files = sorted(p.name for p in folder.iterdir() if p.is_file() and p.suffix.lower() in (".toml", *MESH_SUFFIXES))
+    if not files:
+        hint = "it holds no .toml, .obj or .ply file"
+    else:
+        base = path if path.is_dir() else folder  # a name that loads from where the caller is
+        shown = ", ".join(str(base / name) for name in files[:10])
+        hint = f"files in it: {shown}" + (f" and {len(files) - 10} more" if len(files) > 10 else "")
+    return f"{str(path)!r} is a directory ({folder.resolve()}), not a scene; load_scene takes {accepted}; {hint}"

@@ -149,8 +149,10 @@ def test_bad_rays_and_arguments_are_clear_errors():
         tree.intersect(np.full((4, 3), np.nan), np.ones((4, 3)))
     with pytest.raises(ValueError, match="non-zero"):
         tree.intersect(good, good)
-    with pytest.raises(ValueError, match="tmin"):
+    with pytest.raises(ValueError, match=r"tmin must be <= tmax; ray 0 has tmin = 2.0 > tmax = 1.0 \(4 of 4"):
         tree.intersect(good, np.ones((4, 3)), tmin=2.0, tmax=1.0)
+    with pytest.raises(ValueError, match="tmax must be a number, got NaN for ray 2"):
+        tree.intersect(good, np.ones((4, 3)), tmax=[1.0, 1.0, np.nan, 1.0])
     with pytest.raises(ValueError, match="variant"):
         build_kdtree(soup(10, 1), "bvh")
     with pytest.raises(ValueError, match="axis_selection"):
@@ -160,6 +162,24 @@ def test_bad_rays_and_arguments_are_clear_errors():
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             build_kdtree(collapsed, cache=False)
+
+
+def test_missing_or_mis_sized_tmin_tmax_are_clear_errors():
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        tree = build_kdtree(soup(50, 1), "naive", cache=False)
+    origins, directions = np.zeros((4, 3)), np.ones((4, 3))
+    with pytest.raises(TypeError, match=r"tmax is required: a float or an array of shape \(4,\).*got None.*np\.inf"):
+        tree.occluded(origins, directions, None)
+    with pytest.raises(TypeError, match="tmin is required.*got None"):
+        tree.intersect(origins, directions, tmin=None)
+    with pytest.raises(TypeError, match=r"tmax must be a float or an array of shape \(4,\).*got str 'far'"):
+        tree.occluded(origins, directions, "far")
+    with pytest.raises(ValueError, match=r"tmax has shape \(3,\) but there are 4 rays"):
+        tree.occluded(origins, directions, np.ones(3))
+    with pytest.raises(ValueError, match=r"tmin has shape \(4, 1\) but there are 4 rays"):
+        tree.intersect(origins, directions, tmin=np.zeros((4, 1)))
+    assert tree.occluded(origins, directions, np.full(4, np.inf)).shape == (4,)
 
 
 @pytest.mark.parametrize("variant", VARIANTS)

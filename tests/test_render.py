@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import importlib
 import math
 import os
 import warnings
@@ -258,6 +259,18 @@ def test_bad_arguments_are_clear_errors(cbox):
         render(cbox, camera=dataclasses.replace(cbox.camera, up=(math.nan, 1.0, 0.0)))
     with pytest.raises(ValueError, match="floor"):
         render(with_material(cbox, "floor", albedo=(math.nan, 0.5, 0.5)))
+
+
+@pytest.mark.parametrize(("aux", "gib", "buffers"), [(True, "48,428.8", "rgb, variance, albedo, normal and depth"),
+                                                     (False, "22,351.7", "rgb and variance")])
+def test_resolution_too_large_for_memory_is_refused_before_any_work(cbox, aux, gib, buffers, monkeypatch):
+    def no_tree(*args, **kwargs):
+        raise AssertionError("the size check must come before the tree is built")
+
+    monkeypatch.setattr(importlib.import_module("kdtrace.render"), "build_kdtree", no_tree)  # the module, not the function
+    with pytest.raises(ValueError, match=rf"width x height = 1000000 x 1000000 \(1,000,000,000,000 pixels\) "
+                                         rf"needs about {gib} GiB for the {buffers} buffers, more than "):
+        render(cbox, width=10**6, height=10**6, aux=aux)
 
 
 def test_scene_without_light_is_black_with_warning(cbox):

@@ -187,6 +187,18 @@ def test_unknown_scene_name_lists_the_available_ones():
         load_scene("nope")
 
 
+def test_directory_is_refused_naming_what_is_accepted_and_its_mesh_files(tmp_path, mesh_folder):
+    message = r"is a directory .*, not a scene; load_scene takes a scene name \(.*cbox-original.*\), a \.toml description"
+    with pytest.raises(SceneError, match=message + ".*" + re.escape(f"in it: {mesh_folder / 'painted.obj'}, "
+                                                                    f"{mesh_folder / 'tri.obj'}")):
+        load_scene(mesh_folder)
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(SceneError, match=message + ".*it holds no .toml, .obj or .ply file"):
+        load_scene(tmp_path / "empty")
+    with pytest.raises(SceneError, match=re.escape(f"'empty' is a directory ({tmp_path / 'empty'})")):
+        load_scene("empty", search_path=[tmp_path])
+
+
 @pytest.mark.parametrize(
     ("text", "message"),
     [
