@@ -33,7 +33,7 @@ from kdtrace.kdtree import VARIANTS, KDTree, build_kdtree
 from kdtrace.oracle import intersect_brute_force
 from kdtrace.rays import primary_rays, random_rays
 from kdtrace.scene import Scene
-from references.agreement import UNEXPLAINED, TriangleGeometry, compare_hits, compare_occlusion
+from references.agreement import UNEXPLAINED, WRONG, TriangleGeometry, compare_hits, compare_occlusion
 from references.embree import EmbreeIntersector
 
 DEFAULT_SCENES = ("cbox-sphere", "car")
@@ -227,18 +227,18 @@ def check_answer(scene: Scene, batch: RayBatch, query: str, answer, reference, g
     Raises
     ------
     BenchmarkValidationError
-        When some ray is labelled ``UNEXPLAINED``.
+        When some ray is labelled ``UNEXPLAINED`` or ``WRONG``.
     """
     if query == "closest":
         comparison = compare_hits(scene, batch.origins, batch.directions, answer, reference, geometry=geometry)
     else:
         comparison = compare_occlusion(scene, batch.origins, batch.directions, batch.tmax, answer, reference, geometry=geometry)
     counts = comparison.counts()
-    if counts[UNEXPLAINED]:
-        first = np.flatnonzero(comparison.labels == UNEXPLAINED)[:5].tolist()
+    if counts[UNEXPLAINED] or counts[WRONG]:
+        first = np.flatnonzero(np.isin(comparison.labels, (UNEXPLAINED, WRONG)))[:5].tolist()
         raise BenchmarkValidationError(
-            f"{scene.name}, {batch.kind} rays, {query}: {counts[UNEXPLAINED]} of {counts['rays']} rays disagree "
-            f"with the reference without explanation (first rays: {first}); counts {counts}"
+            f"{scene.name}, {batch.kind} rays, {query}: {counts[UNEXPLAINED]} unexplained and {counts[WRONG]} wrong "
+            f"of {counts['rays']} rays (first rays: {first}); counts {counts}"
         )
     return counts
 

@@ -15,6 +15,12 @@ from numba import njit, prange
 from kdtrace._kdtree_build import LEAF
 
 STACK_SIZE = 96
+#: Relative widening of every ray interval a box or split plane yields, 1 + 2 gamma(3) in
+#: float64 (pbrt-v4's robust slab test): a computed crossing distance is within gamma(3) of
+#: the exact one, so a ray through a box corner or along a box face is not clipped away
+#: by rounding. Leaves test triangles over (tmin, closest hit), not the node interval, so
+#: widening only ever adds visits.
+INTERVAL_PAD = 1.0 + 2.0 * (3.0 * 2.0**-53) / (1.0 - 3.0 * 2.0**-53)
 
 
 @njit(cache=True, inline="always")
@@ -65,11 +71,81 @@ def intersect_triangle(tri, corners, ox, oy, oz, dx, dy, dz, tmin, tmax):
 
 
 @njit(cache=True, inline="always")
+def ray_shear(dx, dy, dz):
+    """Per-ray constants of :func:`intersect_triangle_watertight` (Woop et al. 2013, §3).
+
+    ``kz`` is the axis of the largest ``|d|`` component and ``kx, ky`` the other two in
+    cyclic order; the shear ``(sx, sy, sz)`` maps the direction to ``(0, 0, 1)``.
+    Returns ``(kx, ky, kz, sx, sy, sz)``.
+    """
+    if abs(dx) >= abs(dy) and abs(dx) >= abs(dz):
+        kz = 0
+    elif abs(dy) >= abs(dz):
+        kz = 1
+    else:
+        kz = 2
+    kx = (kz + 1) % 3
+    ky = (kx + 1) % 3
+    d = (dx, dy, dz)
+    sz = 1.0 / d[kz]
+    return kx, ky, kz, d[kx] * sz, d[ky] * sz, sz
+
+
+@njit(cache=True, inline="always")
+def intersect_triangle_watertight(tri, corners, o, kx, ky, kz, sx, sy, sz, tmin, tmax):
+    """Watertight ray-triangle test (Woop, Benthin, Wald 2013), double-sided, edges inclusive.
+
+    The vertices move into ray space (origin at ``o``, direction sheared onto +z by
+    :func:`ray_shear`), where three 2D edge functions decide the hit. A vertex shared
+    by two triangles gets bit-identical ray-space coordinates in both, and the edge
+    function of a shared edge is exactly the negation of the neighbour's
+    (``a*b - c*d`` against ``c*d - a*b``), so a ray through an edge is never missed by
+    both triangles; Möller–Trumbore gives no such guarantee. Float64 on float32
+    vertices. ``o`` is the origin as a 3-tuple; returns ``(t, u, v)``, t = inf on a miss.
+    """
+    ax = corners[tri, kx] - o[kx]
+    ay = corners[tri, ky] - o[ky]
+    az = corners[tri, kz] - o[kz]
+    bx = corners[tri, 3 + kx] - o[kx]
+    by = corners[tri, 3 + ky] - o[ky]
+    bz = corners[tri, 3 + kz] - o[kz]
+    cx = corners[tri, 6 + kx] - o[kx]
+    cy = corners[tri, 6 + ky] - o[ky]
+    cz = corners[tri, 6 + kz] - o[kz]
+    ax = ax - sx * az
+    ay = ay - sy * az
+    bx = bx - sx * bz
+    by = by - sy * bz
+    cx = cx - sx * cz
+    cy = cy - sy * cz
+    # Edge functions: w0 of edge (b, c) weighs vertex a, w1 of (c, a) weighs b, w2 of (a, b) weighs c.
+    w0 = cx * by - cy * bx
+    w1 = ax * cy - ay * cx
+    w2 = bx * ay - by * ax
+    if (w0 < 0.0 or w1 < 0.0 or w2 < 0.0) and (w0 > 0.0 or w1 > 0.0 or w2 > 0.0):
+        return np.inf, 0.0, 0.0
+    det = w0 + w1 + w2
+    if det == 0.0:
+        return np.inf, 0.0, 0.0
+    t_scaled = (w0 * az + w1 * bz + w2 * cz) * sz
+    if det < 0.0:
+        det = -det
+        t_scaled = -t_scaled
+        w1 = -w1
+        w2 = -w2
+    if t_scaled <= tmin * det or t_scaled >= tmax * det:
+        return np.inf, 0.0, 0.0
+    inv = 1.0 / det
+    return t_scaled * inv, w1 * inv, w2 * inv
+
+
+@njit(cache=True, inline="always")
 def clip_to_box(box, ox, oy, oz, dx, dy, dz, tmin, tmax):
     """Slab test against box = (xmin, ymin, zmin, xmax, ymax, zmax).
 
     Zero direction components are handled explicitly (no 0 * inf), so axis-parallel
-    rays are exact. Returns (t_enter, t_exit); t_enter > t_exit means a miss.
+    rays are exact; the interval is widened by :data:`INTERVAL_PAD` at both ends.
+    Returns (t_enter, t_exit); t_enter > t_exit means a miss.
     """
     t0 = tmin
     t1 = tmax
@@ -82,11 +158,14 @@ def clip_to_box(box, ox, oy, oz, dx, dy, dz, tmin, tmax):
             if o[k] < lo or o[k] > hi:
                 return 1.0, 0.0
             continue
-        inv = 1.0 / d[k]
-        ta = (lo - o[k]) * inv
-        tb = (hi - o[k]) * inv
+        # Divide (once per ray): 1 / d overflows for a subnormal d, and 0 * inf is NaN
+        # for an origin on the slab's face.
+        ta = (lo - o[k]) / d[k]
+        tb = (hi - o[k]) / d[k]
         if ta > tb:
             ta, tb = tb, ta
+        ta = ta / INTERVAL_PAD
+        tb = tb * INTERVAL_PAD
         if ta > t0:
             t0 = ta
         if tb < t1:
@@ -99,13 +178,14 @@ def clip_to_box(box, ox, oy, oz, dx, dy, dz, tmin, tmax):
 @njit(cache=True, inline="always")  # inlined: no per-ray call, no reference counting of the arrays
 def trace_ray(
     nodes, splits, refs, box, corners,
-    ox, oy, oz, dx, dy, dz, tmin, tmax, any_hit, st_node, st_ent, st_ext,
+    ox, oy, oz, dx, dy, dz, tmin, tmax, any_hit, watertight, st_node, st_ent, st_ext,
 ):
     """Closest (or any) hit of one ray; returns (t, triangle, u, v, nodes_visited, tests).
 
     ``nodes`` is the packed (N, 4) int32 node array ``[meta, split bits, start, count]``
     and ``splits`` its float32 view (column 1 is the split position), so one node is
-    16 contiguous bytes. ``st_*`` are caller-owned stack buffers (no allocation per ray).
+    16 contiguous bytes. ``watertight`` picks :func:`intersect_triangle_watertight`
+    over Möller–Trumbore. ``st_*`` are caller-owned stack buffers (no allocation per ray).
     """
     best_t = tmax
     best_tri = -1
@@ -121,6 +201,7 @@ def trace_ray(
     # Reciprocal directions: a multiply per node instead of a divide (inf where d = 0,
     # a case handled before it is used).
     inv_d = (1.0 / dx if dx != 0.0 else np.inf, 1.0 / dy if dy != 0.0 else np.inf, 1.0 / dz if dz != 0.0 else np.inf)
+    kx, ky, kz, sx, sy, sz = ray_shear(dx, dy, dz)
     node = 0
     sp = 0
     while True:
@@ -131,7 +212,10 @@ def trace_ray(
             for k in range(first, first + count):
                 tri = refs[k]
                 tests += 1
-                t, u, v = intersect_triangle(tri, corners, ox, oy, oz, dx, dy, dz, tmin, best_t)
+                if watertight:
+                    t, u, v = intersect_triangle_watertight(tri, corners, o, kx, ky, kz, sx, sy, sz, tmin, best_t)
+                else:
+                    t, u, v = intersect_triangle(tri, corners, ox, oy, oz, dx, dy, dz, tmin, best_t)
                 if t < best_t:
                     best_t = t
                     best_tri = tri
@@ -150,15 +234,26 @@ def trace_ray(
             else:
                 near = left + 1
                 far = left
+            if d[axis] == 0.0 and o[axis] == split:
+                # Lying in the plane: triangles of both children can touch the ray along
+                # their edges in the plane (a triangle reaching the plane from one side is
+                # stored on that side only), so visit both over the same interval.
+                st_node[sp] = far
+                st_ent[sp] = ent
+                st_ext[sp] = ext
+                sp += 1
+                node = near
+                continue
             if d[axis] == 0.0 or o[axis] == split:
                 # Parallel to the plane, or starting on it heading into `near`: one child.
                 # (Also avoids 0 * inf = NaN when 1/d overflows for a subnormal d.)
                 node = near
                 continue
             t_plane = (split - o[axis]) * inv_d[axis]
-            if t_plane > ext or t_plane <= 0.0 or t_plane > best_t:
+            # Skip a child only if the plane is beyond the interval by more than rounding.
+            if t_plane > ext * INTERVAL_PAD or t_plane <= 0.0 or t_plane > best_t:
                 node = near
-            elif t_plane < ent:
+            elif t_plane * INTERVAL_PAD < ent:
                 node = far
             else:
                 st_node[sp] = far
@@ -168,7 +263,9 @@ def trace_ray(
                 node = near
                 ext = t_plane
             continue
-        # Leaf done: resume with the next subtree unless the closest hit precedes it.
+        # Leaf done: resume with the next subtree unless the closest hit precedes it. Entries
+        # are not sorted by distance (a child of a plane the ray lies in is pushed with the
+        # parent's entry), so a skipped entry says nothing about the ones below it.
         found = False
         while sp > 0:
             sp -= 1
@@ -178,7 +275,6 @@ def trace_ray(
                 ext = st_ext[sp]
                 found = True
                 break
-            sp = 0  # entries below are even farther: stop
         if not found:
             break
     if best_tri < 0:
@@ -189,7 +285,7 @@ def trace_ray(
 @njit(cache=True, parallel=True)
 def trace_batch(
     nodes, splits, refs, box, corners,
-    origins, directions, tmin, tmax, any_hit, n_chunks,
+    origins, directions, tmin, tmax, any_hit, watertight, n_chunks,
     out_t, out_tri, out_u, out_v, out_visited, out_tests,
 ):
     """Trace every ray, in parallel over chunks of rays (one stack per chunk)."""
@@ -204,7 +300,7 @@ def trace_batch(
                 nodes, splits, refs, box, corners,
                 origins[i, 0], origins[i, 1], origins[i, 2],
                 directions[i, 0], directions[i, 1], directions[i, 2],
-                tmin[i], tmax[i], any_hit, st_node, st_ent, st_ext,
+                tmin[i], tmax[i], any_hit, watertight, st_node, st_ent, st_ext,
             )
             out_t[i] = t
             out_tri[i] = tri

@@ -238,7 +238,7 @@ def offset_origin(px, py, pz, nx, ny, nz, dx, dy, dz):
 @njit(cache=True, error_model="numpy")
 def path_sample(
     specular, textures, normals, sky, emitters, emitter_selection, aux,
-    nodes, splits, refs, box, corners, tri_mat, tri_normals, tri_uv,
+    nodes, splits, refs, box, corners, watertight, tri_mat, tri_normals, tri_uv,
     mat_kind, mat_albedo, mat_emission, mat_ior, mat_tex, tex_pixels, tex_info,
     emit_tri, emit_cdf, tri_emit_pdf, sky_rgb,
     ox, oy, oz, dx, dy, dz, key, max_depth, rr_depth, st_node, st_ent, st_ext,
@@ -272,7 +272,7 @@ def path_sample(
     depth = 0
     while True:
         t, tri, u, v, _, _ = trace_ray(nodes, splits, refs, box, corners, ox, oy, oz, dx, dy, dz,
-                                       0.0, np.inf, False, st_node, st_ent, st_ext)
+                                       0.0, np.inf, False, watertight, st_node, st_ent, st_ext)
         if depth > 0:
             n_bounce += 1
         if tri < 0:
@@ -346,7 +346,7 @@ def path_sample(
                         _, blocker, _, _, _, _ = trace_ray(
                             nodes, splits, refs, box, corners, sox, soy, soz,
                             hx / hdist, hy / hdist, hz / hdist, 0.0, hdist * (1.0 - SHADOW_EPSILON),
-                            True, st_node, st_ent, st_ext)
+                            True, watertight, st_node, st_ent, st_ext)
                         if blocker < 0:
                             pdf_light = tri_emit_pdf[ltri] * dist * dist / cos_l
                             pdf_bsdf = cos_o * _INV_PI
@@ -404,7 +404,7 @@ def path_sample(
 @njit(cache=True, parallel=True, error_model="numpy")
 def render_tiles(
     specular, textures, normals, sky, emitters, emitter_selection, aux,
-    nodes, splits, refs, box, corners, tri_mat, tri_normals, tri_uv,
+    nodes, splits, refs, box, corners, watertight, tri_mat, tri_normals, tri_uv,
     mat_kind, mat_albedo, mat_emission, mat_ior, mat_tex, tex_pixels, tex_info,
     emit_tri, emit_cdf, tri_emit_pdf, sky_rgb, cam,
     width, height, spp, max_depth, rr_depth, seed, tile_size,
@@ -447,7 +447,7 @@ def render_tiles(
                     dx, dy, dz = camera_direction(cam, width, height, i + uniform(key, 0), j + uniform(key, 1))
                     lr, lg, lb, ar, ag, ab, nx, ny, nz, t, shadow, bounce = path_sample(
                         specular, textures, normals, sky, emitters, emitter_selection, aux,
-                        nodes, splits, refs, box, corners, tri_mat, tri_normals, tri_uv,
+                        nodes, splits, refs, box, corners, watertight, tri_mat, tri_normals, tri_uv,
                         mat_kind, mat_albedo, mat_emission, mat_ior, mat_tex, tex_pixels, tex_info,
                         emit_tri, emit_cdf, tri_emit_pdf, sky_rgb,
                         cam[0], cam[1], cam[2], dx, dy, dz, key, max_depth, rr_depth, st_node, st_ent, st_ext,

@@ -50,15 +50,18 @@ def _build(args, config) -> int:
 
 
 def _check_embree(args, config) -> int:
-    from references.agreement import main_check_embree
+    from references.agreement import OURS_EXACT, UNEXPLAINED, WRONG, main_check_embree
 
     rays = args.rays or config.embree_check.rays_per_kind
     seed = config.embree_check.seed if args.seed is None else args.seed
     df, text = main_check_embree(args.scene, rays, seed)
     print(text)
-    unexplained = int(df["unexplained"].sum())
+    unexplained = int(df[UNEXPLAINED].sum())
+    wrong = int(df[WRONG].sum())
+    print(f"wrong (the float64 oracle finds a nearer hit): {wrong}")
     print(f"unexplained disagreements: {unexplained}")
-    return 1 if unexplained else 0
+    print(f"disagreements where ours is exact and Embree is not: {int(df[OURS_EXACT].sum())}")
+    return 1 if unexplained or wrong else 0
 
 
 def _render(args, config) -> int:

@@ -16,6 +16,10 @@ from typing import Any
 DEFAULTS_PATH = Path(__file__).with_name("defaults.toml")
 
 
+#: Ray-triangle tests the traversal offers (:attr:`KDTreeConfig.triangle_test`).
+TRIANGLE_TESTS = ("watertight", "moller-trumbore")
+
+
 @dataclass(frozen=True)
 class KDTreeConfig:
     """Build parameters of both SAH KD-trees (paper §2, eq. 1 and Terminate).
@@ -37,6 +41,10 @@ class KDTreeConfig:
     clip_triangles : bool
         Classify triangles by exact overlap with each node (perfect splits) instead of
         by their bounding boxes (the paper's naive build).
+    triangle_test : str
+        Ray-triangle test of the traversal: ``"watertight"`` (Woop, Benthin, Wald 2013;
+        no ray slips between triangles sharing an edge) or ``"moller-trumbore"``. Not a
+        build parameter: trees are cached and shared across both.
     """
 
     traversal_cost: float = 1.0
@@ -47,6 +55,7 @@ class KDTreeConfig:
     axis_selection: str = "all"
     empty_bonus: float = 0.2
     clip_triangles: bool = False
+    triangle_test: str = "watertight"
 
     def __post_init__(self) -> None:
         if self.traversal_cost < 0 or self.intersection_cost <= 0:
@@ -57,6 +66,8 @@ class KDTreeConfig:
             raise ValueError("kdtree.axis_selection must be 'all' or 'cycle'")
         if not 0.0 <= self.empty_bonus < 1.0:
             raise ValueError("kdtree.empty_bonus must be in [0, 1)")
+        if self.triangle_test not in TRIANGLE_TESTS:
+            raise ValueError(f"kdtree.triangle_test must be one of {TRIANGLE_TESTS}, got {self.triangle_test!r}")
 
 
 @dataclass(frozen=True)

@@ -51,6 +51,8 @@ class KDTree:
     Attributes
     ----------
     variant : {"naive", "local"}
+    triangle_test : {"watertight", "moller-trumbore"}
+        Ray-triangle test of the queries (``KDTreeConfig.triangle_test``).
     stats : dict
         nodes, leaves, empty_leaves, max_depth, triangle_references (leaf + interior),
         leaf_references, interior_references, sah_cost, tree_bytes, build_seconds,
@@ -59,8 +61,11 @@ class KDTree:
         Work counters of the most recent query.
     """
 
-    def __init__(self, scene: Scene, variant: str, arrays: dict[str, np.ndarray], stats: dict):
+    def __init__(self, scene: Scene, variant: str, arrays: dict[str, np.ndarray], stats: dict,
+                 triangle_test: str = "watertight"):
         self.variant = variant
+        self.triangle_test = triangle_test
+        self.watertight = triangle_test == "watertight"
         self.stats = stats
         self.node_meta = arrays["node_meta"]
         self.node_split = arrays["node_split"]
@@ -91,7 +96,7 @@ class KDTree:
         n_chunks = max(1, min(n, 16 * numba.get_num_threads()))
         traverse_kernels.trace_batch(
             self.packed_nodes, self.packed_nodes.view(np.float32), self.refs, self.box, self.corners, origins, directions, tmin, tmax, any_hit,
-            n_chunks, out_t, out_tri, out_u, out_v, visited, tests,
+            self.watertight, n_chunks, out_t, out_tri, out_u, out_v, visited, tests,
         )
         self.last_counters = TraceCounters(visited, tests)
         return out_t, out_tri, out_u, out_v
@@ -297,16 +302,18 @@ def build_kdtree(
             f"scene {scene.name!r}: {zero_area} zero-area triangles left out of the KD-tree",
             stacklevel=2,
         )
-    key = content_key("kdtree", BUILDER_VERSION, variant, scene.geometry_hash(), dataclasses.asdict(config))
+    # The triangle test is a traversal choice: trees built with either are the same.
+    build_parameters = {k: v for k, v in dataclasses.asdict(config).items() if k != "triangle_test"}
+    key = content_key("kdtree", BUILDER_VERSION, variant, scene.geometry_hash(), build_parameters)
     path = cache_root() / "kdtrees" / f"{scene.name}-{variant}-{key[:20]}.npz"
     if cache:
         loaded = load_npz(path)
         if loaded is not None and set(_TREE_ARRAYS) <= set(loaded[0]):
             arrays, stats = loaded
             stats = dict(stats, cache_hit=True)
-            return KDTree(scene, variant, arrays, stats)
+            return KDTree(scene, variant, arrays, stats, config.triangle_test)
     arrays, stats = _build_arrays(scene, variant, config)
     stats["cache_hit"] = False
     if cache:
         save_npz(path, arrays, stats)
-    return KDTree(scene, variant, arrays, stats)
+    return KDTree(scene, variant, arrays, stats, config.triangle_test)

@@ -220,7 +220,7 @@ def _pack(scene: Scene, tree: KDTree) -> dict[str, np.ndarray]:
               else np.zeros((1, 6), np.float32))
     return {
         "nodes": tree.packed_nodes, "splits": tree.packed_nodes.view(np.float32), "refs": tree.refs,
-        "box": tree.box, "corners": tree.corners, "tri_mat": scene.material_ids,
+        "box": tree.box, "corners": tree.corners, "watertight": tree.watertight, "tri_mat": scene.material_ids,
         "tri_normals": np.ascontiguousarray(tri_normals), "tri_uv": np.ascontiguousarray(tri_uv),
         "mat_kind": np.array([_KINDS[m.kind] for m in scene.materials], np.int32),
         "mat_albedo": np.array([m.albedo for m in scene.materials], np.float64),

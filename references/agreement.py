@@ -22,6 +22,15 @@ explained with float64 arithmetic as one of:
 ``unexplained``
     none of the above: a real bug in one of the two.
 
+Before any explanation is tried, the float64 watertight oracle
+(:func:`kdtrace.oracle.nearest_hits_fast`, every ray against every triangle) judges
+the disagreement: if it finds a hit clear of both ends of the ray (by that hit's
+float32 distance tolerance, below, from ``t = 0`` and from ``tmax``) and nearer than
+ours by more than that tolerance (or ours misses it; for shadow rays: ours reports no
+blocker), the ray is ``wrong``, whatever its geometry, and no class can absorb it. Separately, every disagreement on which our
+answer equals the oracle's and Embree's does not is counted as ``ours exact, Embree
+not``.
+
 Precision model. A float32 ray-triangle test on operands of magnitude at most
 ``|o| + |t d| + scale`` (``scale`` the largest vertex coordinate magnitude) is a
 chain of about a dozen rounded operations (float32 rounding of the inputs, two
@@ -44,7 +53,7 @@ from dataclasses import dataclass
 import numpy as np
 import pandas as pd
 
-from kdtrace.oracle import as_float64_rays
+from kdtrace.oracle import as_float64_rays, nearest_hits_fast
 from kdtrace.scene import Scene
 
 #: Unit roundoff of float32.
@@ -62,9 +71,12 @@ TMAX = "tmax boundary"
 GRAZING = "grazing"
 EDGE = "edge/vertex"
 UNEXPLAINED = "unexplained"
+WRONG = "wrong"
+#: Count (not a label) of disagreements where ours equals the oracle and Embree does not.
+OURS_EXACT = "ours exact, Embree not"
 #: Explanations in the order they are tried; the first that applies is the label.
 EXPLANATIONS = (ZERO_AREA, TMIN, TMAX, GRAZING, EDGE)
-LABELS = (AGREE, TIE, *EXPLANATIONS, UNEXPLAINED)
+LABELS = (AGREE, TIE, *EXPLANATIONS, UNEXPLAINED, WRONG)
 #: The ray kinds of :func:`check_scene`, with the query each uses.
 RAY_KINDS = {"primary": "intersect", "random": "intersect", "vertex": "intersect", "edge": "intersect", "shadow": "occluded"}
 
@@ -187,8 +199,8 @@ def _reasons(
     """Which explanations apply to ray ``i`` passing near triangle ``tri[i]``.
 
     Besides the :data:`EXPLANATIONS`, ``"clear"`` marks an unambiguous hit with
-    ``tol < t < tmax - tol`` and ``"in_range"`` a plane crossing within tolerance
-    of ``[0, tmax]``.
+    ``tol < t < tmax - tol``, ``"in_range"`` a plane crossing within tolerance
+    of ``[0, tmax]`` and ``"in_plane"`` a ray lying in the triangle's plane.
     """
     # Rays parallel to a triangle give inf/NaN plane distances; they fail every test below.
     with np.errstate(invalid="ignore"):
@@ -218,7 +230,8 @@ def _reasons_of(
     at_tmin = on_triangle & ~grazing & (np.abs(t) <= tol_t)
     clear = on_triangle & ~grazing & ~edge & (t > tol_t) & (t < tmax - tol_t)
     in_range = (t > -tol_t) & (t < tmax + tol_t)
-    return {ZERO_AREA: zero, TMIN: at_tmin, TMAX: at_tmax, GRAZING: grazing, EDGE: edge, "clear": clear, "in_range": in_range}
+    return {ZERO_AREA: zero, TMIN: at_tmin, TMAX: at_tmax, GRAZING: grazing, EDGE: edge, "clear": clear,
+            "in_range": in_range, "in_plane": in_plane}
 
 
 def _first_label(ray: np.ndarray, reasons: dict[str, np.ndarray], rays: np.ndarray) -> np.ndarray:
@@ -240,13 +253,35 @@ class Comparison:
     ----------
     labels : (N,) object array of str
         One of :data:`LABELS` per ray.
+    ours_exact : (N,) bool array
+        Disagreements on which our answer is the oracle's and the reference's is not.
     """
 
     labels: np.ndarray
+    ours_exact: np.ndarray
 
     def counts(self) -> dict[str, int]:
-        """Number of rays per label, every label present."""
-        return {"rays": len(self.labels), **{name: int(np.sum(self.labels == name)) for name in LABELS}}
+        """Number of rays per label, every label present, and the :data:`OURS_EXACT` count."""
+        return {"rays": len(self.labels), **{name: int(np.sum(self.labels == name)) for name in LABELS},
+                OURS_EXACT: int(self.ours_exact.sum())}
+
+
+def _start_tolerance(geometry: TriangleGeometry, origins: np.ndarray, directions: np.ndarray) -> np.ndarray:
+    """The smallest distance tolerance at t = 0 (|cos theta| = 1), where the oracle's search for a
+    wrong answer starts: a hit on the surface a ray starts from would hide any farther one."""
+    return t_tolerance(origins, directions, np.zeros(len(origins)), np.ones(len(origins)), geometry.scale)
+
+
+def _oracle(scene: Scene, geometry: TriangleGeometry, origins: np.ndarray, directions: np.ndarray,
+            tmin: float | np.ndarray, tmax: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The watertight oracle's nearest hit ``(t, tri)`` on each ray and its distance tolerance (0 on a miss)."""
+    t, tri = nearest_hits_fast(scene.vertices, scene.triangles, origins, directions, tmin, tmax, skip=geometry.degenerate)
+    hit = tri >= 0
+    tol = np.zeros(len(t))
+    if hit.any():
+        cos = exact_hits(geometry, tri[hit], origins[hit], directions[hit])["cos"]
+        tol[hit] = t_tolerance(origins[hit], directions[hit], t[hit], cos, geometry.scale)
+    return t, tri, tol
 
 
 def _as_tmax(tmax: float | np.ndarray | None, n: int) -> np.ndarray:
@@ -281,9 +316,10 @@ def compare_hits(
     Returns
     -------
     Comparison
-        :data:`AGREE` or :data:`TIE` for agreeing rays; disagreements get the first
-        applicable explanation among the triangles either side reported, checked
-        in float64, or :data:`UNEXPLAINED`.
+        :data:`AGREE` or :data:`TIE` for agreeing rays; a disagreement is :data:`WRONG`
+        when the oracle's nearest hit (rays traced from ``tmin = 0``) is nearer than
+        ours beyond tolerance, else gets the first applicable explanation among the
+        triangles either side reported, checked in float64, or :data:`UNEXPLAINED`.
     """
     origins, directions = as_float64_rays(origins, directions)
     n = len(origins)
@@ -308,6 +344,21 @@ def compare_hits(
     labels[(~hit_o & ~hit_t) | (close & (tri_o == tri_t))] = AGREE
     labels[close & (tri_o != tri_t)] = TIE
     rays = np.flatnonzero(labels == UNEXPLAINED)
+    ours_exact = np.zeros(n, dtype=bool)
+    if len(rays):
+        # The oracle judges first: a nearer exact hit makes ours wrong, whatever the geometry.
+        o, d, end = origins[rays], directions[rays], tmax[rays]
+        t_x, tri_x, tol_x = _oracle(scene, geometry, o, d, 0.0, end)
+
+        def matches(t: np.ndarray, tri: np.ndarray) -> np.ndarray:
+            gap = np.subtract(t, t_x, out=np.full(len(t), np.inf), where=(tri >= 0) & (tri_x >= 0))
+            return np.where(tri_x >= 0, np.abs(gap) <= tol_x, tri < 0)
+
+        ours_exact[rays] = matches(t_o[rays], tri_o[rays]) & ~matches(t_t[rays], tri_t[rays])
+        t_x, _, tol_x = _oracle(scene, geometry, o, d, _start_tolerance(geometry, o, d), end)
+        wrong = (t_x - tol_x > 0.0) & (t_x + tol_x < np.minimum(t_o[rays], end))
+        labels[rays[wrong]] = WRONG
+        rays = rays[~wrong]
     if len(rays):
         ray = np.concatenate([rays[hit_o[rays]], rays[hit_t[rays]]])
         tri = np.concatenate([tri_o[rays][hit_o[rays]], tri_t[rays][hit_t[rays]]])
@@ -315,7 +366,7 @@ def compare_hits(
         ray, tri = ray[order], tri[order]
         reasons = _reasons(geometry, tri, origins[ray], directions[ray], tmax[ray])
         labels[rays] = _first_label(ray, reasons, rays)
-    return Comparison(labels)
+    return Comparison(labels, ours_exact)
 
 
 def _near_degenerate(
@@ -388,12 +439,24 @@ def compare_occlusion(
     if ours.shape != (n,) or theirs.shape != (n,):
         raise ValueError(f"ours and theirs must have shape ({n},)")
     labels = np.full(n, AGREE, dtype=object)
+    ours_exact = np.zeros(n, dtype=bool)
+    differ = np.flatnonzero(ours != theirs)
+    if len(differ):
+        o, d, end = origins[differ], directions[differ], tmax[differ]
+        blocked = _oracle(scene, geometry, o, d, 0.0, end)[1] >= 0
+        ours_exact[differ] = ours[differ] == blocked
+        # A blocker that ours missed, clear of both ends by its own distance tolerance.
+        t_x, _, tol_x = _oracle(scene, geometry, o, d, _start_tolerance(geometry, o, d), end)
+        wrong = ~ours[differ] & (t_x - tol_x > 0.0) & (t_x + tol_x < end)
+        labels[differ[wrong]] = WRONG
+        differ = differ[~wrong]
     solid = np.flatnonzero(~geometry.degenerate)
-    for i in np.flatnonzero(ours != theirs):
+    for i in differ:
         o = np.broadcast_to(origins[i], (len(solid), 3))
         d = np.broadcast_to(directions[i], (len(solid), 3))
         reasons = _reasons(geometry, solid, o, d, np.full(len(solid), tmax[i]))
-        near = reasons["in_range"] & (reasons[TMIN] | reasons[TMAX] | reasons[GRAZING] | reasons[EDGE])
+        # A ray lying in a triangle's plane has no defined plane distance (NaN): near wherever it is.
+        near = (reasons["in_range"] | reasons["in_plane"]) & (reasons[TMIN] | reasons[TMAX] | reasons[GRAZING] | reasons[EDGE])
         far_end = tmax[i] if np.isfinite(tmax[i]) else 0.0
         position = position_tolerance(origins[i : i + 1], directions[i : i + 1], far_end, geometry.scale)[0]
         if reasons["clear"].any():
@@ -402,7 +465,7 @@ def compare_occlusion(
             labels[i] = ZERO_AREA
         else:
             labels[i] = next((name for name in EXPLANATIONS[1:] if reasons[name][near].any()), UNEXPLAINED)
-    return Comparison(labels)
+    return Comparison(labels, ours_exact)
 
 
 # ------------------------------------------------------------------ whole-scene check

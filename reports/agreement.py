@@ -37,7 +37,7 @@ from tqdm import tqdm
 
 from kdtrace.cache import atomic_write_bytes
 from kdtrace.config import Config
-from references.agreement import EXPLANATIONS, TIE, UNEXPLAINED
+from references.agreement import EXPLANATIONS, OURS_EXACT, TIE, UNEXPLAINED, WRONG
 from reports.metrics import Metric, write_metrics
 from reports.notes import ReportNote
 from reports.table1 import load_rows
@@ -47,7 +47,7 @@ ZTEST_SPP, ZTEST_REF_SPP, ZTEST_SIZE, ZTEST_MAX_DEPTH = 256, 256, 32, 3
 #: Scenes of a profile that get the Mitsuba Z-test: names starting with this prefix.
 ZTEST_PREFIX = "cbox-"
 #: Column order of the Embree classes (the data frame of references.agreement names ties "ties").
-EMBREE_CLASSES = ("ties", *EXPLANATIONS, UNEXPLAINED)
+EMBREE_CLASSES = ("ties", *EXPLANATIONS, UNEXPLAINED, WRONG, OURS_EXACT)
 
 
 def embree_by_class(rows: list[dict]) -> pd.DataFrame:
@@ -134,9 +134,10 @@ def generate(config: Config, profile_name: str, out_dir: Path, fresh: bool = Fal
     embree = embree_by_class(load_rows(config, profile_name, out_dir))
     mitsuba, notes = mitsuba_ztests(ztest_scenes(profile.scenes), config, profile.seed, out_dir, progress)
 
-    metrics = [Metric(f"agreement/{row['scene']}/unexplained_embree", "zero", int(row[UNEXPLAINED]),
+    metrics = [Metric(f"agreement/{row['scene']}/{name}", "zero", int(row[label]),
                       f"of {row['rays compared']:,} ray comparisons, both trees, 5 ray kinds")
-               for row in embree.to_dict("records")]
+               for row in embree.to_dict("records") for name, label in (("unexplained_embree", UNEXPLAINED),
+                                                                         ("wrong_embree", WRONG))]
     metrics += [Metric(f"agreement/{row['scene']}/mitsuba_ztest", "pass", bool(row["passed"]),
                        f"per-pixel Welch/Z-test, {ZTEST_SIZE}x{ZTEST_SIZE}, {ZTEST_SPP}/{ZTEST_REF_SPP} spp")
                 for row in mitsuba.to_dict("records")]

@@ -6,7 +6,7 @@ tree bytes; build seconds; Mrays/s of both trees and of Embree on the same rays 
 the same thread count (the primary rays of one frame, and incoherent rays); the
 path-traced frame time (profile frame size and spp, warm, same seed) on the naive and
 on the local-branch tree, beside the paper's 512x512 4 spp seconds; and the Embree
-agreement check (unexplained disagreements must be 0).
+agreement check (unexplained and wrong disagreements must be 0).
 
 Rows are written per scene as soon as they are done (atomically), so an interrupted
 report resumes where it stopped; ``fresh=True`` recomputes. :func:`generate` returns the
@@ -41,14 +41,14 @@ from kdtrace.provenance import machine
 from kdtrace.rays import camera_rays, random_rays
 from kdtrace.render import render
 from kdtrace.scenes import load_scene
-from references.agreement import UNEXPLAINED, check_scene, format_table
+from references.agreement import OURS_EXACT, UNEXPLAINED, WRONG, check_scene, format_table
 from references.embree import EmbreeIntersector
 from reports.metrics import Metric, write_metrics
 from reports.notes import ReportNote
 from reports.paper_figures import TABLE1
 
 #: Version of the row layout; rows measured with another version are measured again.
-ROW_VERSION = 3
+ROW_VERSION = 4
 #: Timed rounds per ray set (each times every intersector once; medians), after one warm-up call.
 TIMING_ROUNDS = 7
 #: Frame renders per tree, in alternating order (naive-local, local-naive, ...): even, so
@@ -163,6 +163,8 @@ def scene_row(name: str, config: Config, profile_name: str, progress: tqdm) -> d
     agreement = check_scene(scene, trees, profile.agreement_rays_per_kind, profile.seed, progress=False)
     row["agreement_rays"] = int(agreement["rays"].sum())
     row["unexplained"] = int(agreement[UNEXPLAINED].sum())
+    row["wrong"] = int(agreement[WRONG].sum())
+    row["ours_exact"] = int(agreement[OURS_EXACT].sum())
     row["agreement_table"] = format_table(agreement)
     row["agreement_counts"] = agreement.to_dict("records")
     row["warnings"] = sorted({str(w.message) for w in caught})
@@ -252,7 +254,7 @@ def generate(config: Config, profile_name: str, out_dir: Path, fresh: bool = Fal
     -------
     list of Metric
         Per scene: local/Embree speed on primary and incoherent rays and local/naive frame
-        speed (``ratio``), unexplained Embree disagreements (``zero``), triangle references
+        speed (``ratio``), unexplained and wrong Embree disagreements (``zero``), triangle references
         of both trees (``count``).
     """
     from kdtrace.distributed import Unit, run_units, scheduler_address
@@ -307,6 +309,8 @@ def table_metrics(rows: list[dict]) -> list[Metric]:
                    "path-traced frame seconds naive / local-branch"),
             Metric(f"{prefix}/unexplained_disagreements", "zero", int(row["unexplained"]),
                    f"of {row['agreement_rays']:,} ray comparisons with Embree"),
+            Metric(f"{prefix}/wrong_hits", "zero", int(row["wrong"]),
+                   f"of {row['agreement_rays']:,} rays: the float64 oracle finds a nearer hit than ours"),
             Metric(f"{prefix}/triangle_references_naive", "count", int(row["naive_triangle_references"]),
                    "deterministic build"),
             Metric(f"{prefix}/triangle_references_local", "count", int(row["local_triangle_references"]),
@@ -340,7 +344,8 @@ def markdown_table(table: pd.DataFrame) -> str:
             "paper frame s naive/local": _pair(paper["naive_frame_seconds"], paper["local_frame_seconds"]) if paper else "",
             "local/naive frame speed": f"{row['frame_local_over_naive']:.2f}",
             "paper local/naive speed": f"{paper['naive_frame_seconds'] / paper['local_frame_seconds']:.2f}" if paper else "",
-            "unexplained vs Embree": f"{row['unexplained']} of {row['agreement_rays']:,} ray comparisons",
+            "unexplained / wrong vs Embree": f"{row['unexplained']} / {row['wrong']} of {row['agreement_rays']:,} ray comparisons",
+            "ours exact, Embree not": f"{row['ours_exact']:,}",
         })
     return tabulate(lines, headers="keys", tablefmt="github")
 

@@ -33,7 +33,7 @@ SCENE_KINDS = (
 #: Kinds whose triangles are in general position (no shared edges, no coplanar sets).
 GENERIC_KINDS = ("soup", "slivers")
 #: Ray kinds of :func:`make_rays`.
-RAY_KINDS = ("random", "axis_parallel", "split_plane", "vertex", "edge", "interior")
+RAY_KINDS = ("random", "axis_parallel", "split_plane", "split_plane_edge", "vertex", "edge", "interior")
 
 
 class StressScene:
@@ -220,6 +220,21 @@ def split_planes(tree) -> tuple[np.ndarray, np.ndarray]:
     return (tree.node_meta[interior] & 3).astype(np.int64), tree.node_split[interior].astype(np.float64)
 
 
+def _edges_in_split_planes(tree, corners: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(axis, a, b) of every triangle edge whose two ends lie in one of the tree's split planes."""
+    axes, positions = split_planes(tree)
+    found = [], [], []
+    for k in range(3):
+        a, b = corners[:, k], corners[:, (k + 1) % 3]
+        for axis in range(3):
+            planes = np.unique(positions[axes == axis])
+            on = (a[:, axis] == b[:, axis]) & np.isin(a[:, axis], planes)
+            found[0].append(np.full(on.sum(), axis))
+            found[1].append(a[on])
+            found[2].append(b[on])
+    return tuple(np.concatenate(part) for part in found)
+
+
 def scale_directions(rng: np.random.Generator, directions: np.ndarray, factor: float, tiny: float = 0.0) -> np.ndarray:
     """Directions times ``factor``, then every zero component replaced by ``+-tiny`` (when non-zero)."""
     directions = directions * factor
@@ -239,6 +254,11 @@ def make_rays(kind: str, scene: Scene, tree, n: int, seed: int) -> tuple[np.ndar
     split_plane
         Origins exactly on one or two of the tree's split planes; a third of the
         directions lie in the plane (component ±0), others axis-parallel or random.
+    split_plane_edge
+        Rays lying exactly in a split plane (direction component ±0 on its axis) through
+        a point of a triangle edge lying in that plane (both ends on it: the shared
+        edges of grids, terraces and boxes), from either side; scenes without such
+        edges get ``split_plane`` rays.
     vertex
         Rays through a vertex: axis-parallel from an exactly shifted origin (the ray
         passes exactly through the float32 vertex), oblique ones aimed at it, and rays
@@ -270,6 +290,19 @@ def make_rays(kind: str, scene: Scene, tree, n: int, seed: int) -> tuple[np.ndar
                     in_plane = rng.random(n) < 0.35
                     directions[in_plane, axes[pick[in_plane]]] = _signed_zero(rng, in_plane.sum())
             directions = _zero_components(rng, directions, fraction=0.3)
+    elif kind == "split_plane_edge":
+        edges = _edges_in_split_planes(tree, corners)
+        if len(edges[0]) == 0:
+            return make_rays("split_plane", scene, tree, n, seed)
+        axis, a, b = (part[rng.integers(0, len(edges[0]), size=n)] for part in edges)
+        rows = np.arange(n)
+        s = np.where(rng.random(n) < 0.4, rng.choice([0.0, 0.5, 1.0], size=n), rng.uniform(0.0, 1.0, size=n))
+        point = a + s[:, None] * (b - a)
+        point[rows, axis] = a[rows, axis]  # exactly in the plane, whatever the rounding of a + s (b - a)
+        directions[rows, axis] = _signed_zero(rng, n)
+        unit = directions / np.linalg.norm(directions, axis=1, keepdims=True)
+        origins = point - rng.uniform(0.05, 1.0, size=(n, 1)) * size * unit
+        origins[rows, axis] = a[rows, axis]
     elif kind == "vertex":
         tri = rng.integers(0, len(corners), size=n)
         vertex = corners[tri, rng.integers(0, 3, size=n)]

@@ -98,7 +98,7 @@ def test_validation_rejects_wrong_answers(tiny_bench):
     hit = tri >= 0
     assert hit.sum() > 100
     missed = (np.where(hit, np.inf, t), np.where(hit, -1, tri), u, v)
-    with pytest.raises(BenchmarkValidationError, match="without explanation"):
+    with pytest.raises(BenchmarkValidationError, match="wrong of"):
         check_answer(scene, batch, "closest", missed, reference)
     too_far = (np.where(hit, 1.5 * t, t), tri, u, v)
     with pytest.raises(BenchmarkValidationError):

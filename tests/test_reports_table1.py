@@ -32,7 +32,7 @@ def test_frame_times_render_both_trees_alike(cbox):
 
 def test_metrics_of_a_row():
     row = {"scene": "s", "primary_local_over_embree": 0.5, "incoherent_local_over_embree": 0.25,
-           "frame_local_over_naive": 1.1, "unexplained": 0, "agreement_rays": 10, "naive_triangle_references": 12,
+           "frame_local_over_naive": 1.1, "unexplained": 0, "wrong": 0, "agreement_rays": 10, "naive_triangle_references": 12,
            "local_triangle_references": 9}
     metrics = {m.name: m for m in table1.table_metrics([row])}
     assert {name: (m.kind, m.value) for name, m in metrics.items()} == {
@@ -40,6 +40,7 @@ def test_metrics_of_a_row():
         "table1/s/local_over_embree_incoherent": ("ratio", 0.25),
         "table1/s/local_over_naive_frame": ("ratio", 1.1),
         "table1/s/unexplained_disagreements": ("zero", 0),
+        "table1/s/wrong_hits": ("zero", 0),
         "table1/s/triangle_references_naive": ("count", 12),
         "table1/s/triangle_references_local": ("count", 9),
     }
