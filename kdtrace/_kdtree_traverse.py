@@ -92,7 +92,7 @@ def ray_shear(dx, dy, dz):
 
 
 @njit(cache=True, inline="always")
-def intersect_triangle_watertight(tri, corners, o, kx, ky, kz, sx, sy, sz, tmin, tmax):
+def intersect_triangle_watertight(tri, corners, okx, oky, okz, kx, ky, kz, sx, sy, sz, tmin, tmax):
     """Watertight ray-triangle test (Woop, Benthin, Wald 2013), double-sided, edges inclusive.
 
     The vertices move into ray space (origin at ``o``, direction sheared onto +z by
@@ -101,26 +101,23 @@ def intersect_triangle_watertight(tri, corners, o, kx, ky, kz, sx, sy, sz, tmin,
     function of a shared edge is exactly the negation of the neighbour's
     (``a*b - c*d`` against ``c*d - a*b``), so a ray through an edge is never missed by
     both triangles; Möller–Trumbore gives no such guarantee. Float64 on float32
-    vertices. ``o`` is the origin as a 3-tuple; returns ``(t, u, v)``, t = inf on a miss.
+    vertices. ``okx, oky, okz`` are the origin's components in the permuted order;
+    returns ``(t, u, v)``, t = inf on a miss.
     """
-    ax = corners[tri, kx] - o[kx]
-    ay = corners[tri, ky] - o[ky]
-    az = corners[tri, kz] - o[kz]
-    bx = corners[tri, 3 + kx] - o[kx]
-    by = corners[tri, 3 + ky] - o[ky]
-    bz = corners[tri, 3 + kz] - o[kz]
-    cx = corners[tri, 6 + kx] - o[kx]
-    cy = corners[tri, 6 + ky] - o[ky]
-    cz = corners[tri, 6 + kz] - o[kz]
-    ax = ax - sx * az
-    ay = ay - sy * az
-    bx = bx - sx * bz
-    by = by - sy * bz
-    cx = cx - sx * cz
-    cy = cy - sy * cz
+    az = corners[tri, kz] - okz
+    bz = corners[tri, 3 + kz] - okz
+    cz = corners[tri, 6 + kz] - okz
+    ax = (corners[tri, kx] - okx) - sx * az
+    ay = (corners[tri, ky] - oky) - sy * az
+    bx = (corners[tri, 3 + kx] - okx) - sx * bz
+    by = (corners[tri, 3 + ky] - oky) - sy * bz
+    cx = (corners[tri, 6 + kx] - okx) - sx * cz
+    cy = (corners[tri, 6 + ky] - oky) - sy * cz
     # Edge functions: w0 of edge (b, c) weighs vertex a, w1 of (c, a) weighs b, w2 of (a, b) weighs c.
     w0 = cx * by - cy * bx
     w1 = ax * cy - ay * cx
+    if (w0 < 0.0 and w1 > 0.0) or (w0 > 0.0 and w1 < 0.0):
+        return np.inf, 0.0, 0.0  # early out: two signs already differ
     w2 = bx * ay - by * ax
     if (w0 < 0.0 or w1 < 0.0 or w2 < 0.0) and (w0 > 0.0 or w1 > 0.0 or w2 > 0.0):
         return np.inf, 0.0, 0.0
@@ -201,7 +198,8 @@ def trace_ray(
     # Reciprocal directions: a multiply per node instead of a divide (inf where d = 0,
     # a case handled before it is used).
     inv_d = (1.0 / dx if dx != 0.0 else np.inf, 1.0 / dy if dy != 0.0 else np.inf, 1.0 / dz if dz != 0.0 else np.inf)
-    kx, ky, kz, sx, sy, sz = ray_shear(dx, dy, dz)
+    kx, ky, kz, sx, sy, sz = ray_shear(dx, dy, dz) if watertight else (0, 1, 2, 0.0, 0.0, 0.0)
+    okx, oky, okz = o[kx], o[ky], o[kz]
     node = 0
     sp = 0
     while True:
@@ -213,7 +211,7 @@ def trace_ray(
                 tri = refs[k]
                 tests += 1
                 if watertight:
-                    t, u, v = intersect_triangle_watertight(tri, corners, o, kx, ky, kz, sx, sy, sz, tmin, best_t)
+                    t, u, v = intersect_triangle_watertight(tri, corners, okx, oky, okz, kx, ky, kz, sx, sy, sz, tmin, best_t)
                 else:
                     t, u, v = intersect_triangle(tri, corners, ox, oy, oz, dx, dy, dz, tmin, best_t)
                 if t < best_t:

@@ -233,6 +233,8 @@ def offset_origin(px, py, pz, nx, ny, nz, dx, dy, dz):
 #   emitters           emission at hits and next-event estimation
 #   emitter_selection  pick among several emitter triangles by a CDF (else emitter 0)
 #   aux                albedo, normal and depth of the first hit
+# ``watertight`` (the triangle test of the tree, :func:`kdtrace._kdtree_traverse.trace_ray`)
+# is forced to a literal the same way, so only one ray-triangle test is compiled in.
 
 
 @njit(cache=True, error_model="numpy")
@@ -255,6 +257,7 @@ def path_sample(
     literally(emitters)
     literally(emitter_selection)
     literally(aux)
+    literally(watertight)
     lr = 0.0  # radiance gathered so far
     lg = 0.0
     lb = 0.0
@@ -423,6 +426,7 @@ def render_tiles(
     literally(emitters)
     literally(emitter_selection)
     literally(aux)
+    literally(watertight)
     tiles_x = (width + tile_size - 1) // tile_size
     tiles_y = (height + tile_size - 1) // tile_size
     for tile in prange(tiles_x * tiles_y):
