@@ -50,11 +50,13 @@ def _build(args, config) -> int:
 
 
 def _check_embree(args, config) -> int:
+    from kdtrace.plugins import OUR_ACCELERATORS
     from references.agreement import OURS_EXACT, UNEXPLAINED, WRONG, main_check_embree
 
     rays = args.rays or config.embree_check.rays_per_kind
     seed = config.embree_check.seed if args.seed is None else args.seed
-    df, text = main_check_embree(args.scene, rays, seed)
+    specs = tuple(spec for value in args.accelerator or OUR_ACCELERATORS for spec in value.split(",") if spec)
+    df, text = main_check_embree(args.scene, rays, seed, specs)
     print(text)
     unexplained = int(df[UNEXPLAINED].sum())
     wrong = int(df[WRONG].sum())
@@ -186,10 +188,13 @@ def build_parser() -> argparse.ArgumentParser:
     build.add_argument("--no-cache", action="store_true", help="rebuild even when a cached tree exists")
     build.set_defaults(run=_build)
 
-    check = sub.add_parser("check-embree", help="compare both trees with Embree ray for ray")
+    check = sub.add_parser("check-embree", help="compare our two trees (or --accelerator plug-ins) with Embree ray for ray")
     check.add_argument("scene", help="scene name, .toml, .obj or .ply")
     check.add_argument("--rays", type=int, help="rays per kind (default from the configuration: 1,000,000)")
     check.add_argument("--seed", type=int)
+    check.add_argument("--accelerator", action="append", metavar="NAME",
+                       help="plug-in to compare: a registered name (local, naive, embree, ...) or package.module:factory; "
+                            "repeatable or comma-separated (default: our two trees, local and naive)")
     check.set_defaults(run=_check_embree)
 
     render = sub.add_parser("render", help="path trace a scene and write EXR (linear) and PNG (sRGB) images")

@@ -54,6 +54,7 @@ import numpy as np
 import pandas as pd
 
 from kdtrace.oracle import as_float64_rays, nearest_hits_fast
+from kdtrace.plugins import OUR_ACCELERATORS, load_accelerator
 from kdtrace.scene import Scene
 
 #: Unit roundoff of float32.
@@ -559,9 +560,15 @@ def format_table(df: pd.DataFrame) -> str:
 
 
 def main_check_embree(
-    scene_name: str, rays_per_kind: int, seed: int, variants: tuple[str, ...] = ("local", "naive")
+    scene_name: str, rays_per_kind: int, seed: int, accelerators: tuple[str, ...] = OUR_ACCELERATORS
 ) -> tuple[pd.DataFrame, str]:
-    """Load a scene, build our KD-tree variants and compare them with Embree.
+    """Load a scene, build the accelerators named and compare them with Embree.
+
+    Parameters
+    ----------
+    accelerators : tuple of str
+        Plug-in specs (:func:`kdtrace.plugins.load_accelerator`): short names such as
+        our KD-trees ``local`` and ``naive``, or ``package.module:factory``.
 
     Returns
     -------
@@ -570,11 +577,10 @@ def main_check_embree(
     text : str
         A heading line and the markdown table, for ``kdtrace check-embree``.
     """
-    from kdtrace.kdtree import build_kdtree
     from kdtrace.scenes import load_scene
 
     scene = load_scene(scene_name)
-    trees = {variant: build_kdtree(scene, variant=variant) for variant in variants}
+    trees = {spec: load_accelerator(spec, scene) for spec in accelerators}
     df = check_scene(scene, trees, rays_per_kind, seed)
     heading = (f"Agreement with Embree on {scene.name} ({len(scene.triangles)} triangles), "
                f"{rays_per_kind} rays per kind, seed {seed}")
