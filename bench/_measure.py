@@ -407,7 +407,7 @@ class Results:
     def finalize(self) -> None:
         """Fill ``kdtrace_over_embree`` (our variants) and ``local_over_naive`` (local) into every traversal row."""
         rates = self._rates()
-        for row, extra in zip(self.rows, self._extra):
+        for row, extra in zip(self.rows, self._extra, strict=True):
             if row["benchmark"] != "traversal" or row["variant"] == "embree":
                 continue
             key = row["scene"], row["kind"], row["query"]
@@ -435,7 +435,7 @@ class Results:
                 scene["build_peak_memory_bytes"][variant] = row["peak_memory_bytes"]
         for (name, kind, query, variant), rate in rates.items():
             scenes[name]["mrays_per_s"].setdefault(kind, {}).setdefault(query, {})[variant] = rate
-        for name, scene in scenes.items():
+        for scene in scenes.values():
             refs = scene["references"]
             if "naive" in refs and "local" in refs:
                 scene["references"]["reduction_pct"] = 100.0 * (1.0 - refs["local"] / refs["naive"])

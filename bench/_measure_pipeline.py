@@ -27,8 +27,8 @@ Three sides per scene, at :data:`SIZE` with ``max_depth`` 3:
 ``mitsuba-same-psnr``
     Mitsuba at the smallest spp of the ladder 1, 2, 4, ... (up to
     :data:`MITSUBA_MAX_SPP`) whose PSNR reaches the pipeline's, found untimed; then
-    timed (at 1 spp the speed-up is an upper bound: Mitsuba may need less). Validated: its PSNR does reach the pipeline's; when no rung does, the
-    largest is timed and ``reached`` is False (the speed-up is then a lower bound).
+    timed (at 1 spp the speed-up is an upper bound: Mitsuba may need less). Validated: its PSNR does reach the pipeline's; when
+    no rung does, the largest is timed and ``reached`` is False (the speed-up is then a lower bound).
 
 Every side records its PSNR and RMSE in ``extra_info``; :meth:`PipelineResults.finalize`
 adds the same-run ratios ``mitsuba_same_psnr_over_pipeline_seconds`` and
@@ -237,7 +237,7 @@ class PipelineResults:
     def finalize(self) -> None:
         """Write ``mitsuba_same_*_over_pipeline_seconds`` into every row of a scene that has the sides."""
         seconds = {(row["scene"], row["side"]): row["seconds"] for row in self.rows}
-        for row, extra in zip(self.rows, self._extra):
+        for row, extra in zip(self.rows, self._extra, strict=True):
             ours = seconds.get((row["scene"], "pipeline"))
             for side in SIDES[1:]:
                 theirs = seconds.get((row["scene"], side))

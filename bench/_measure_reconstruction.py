@@ -205,7 +205,7 @@ class ReconstructionResults:
     def finalize(self) -> None:
         """Write each group's ratio into every row and extra_info of that group."""
         ratios = self.ratios()
-        for row, extra in zip(self.rows, self.extras):
+        for row, extra in zip(self.rows, self.extras, strict=True):
             if row["group"] in ratios:
                 key = f"{BASELINES[row['group']]}_over_ours_seconds"
                 row[key] = extra[key] = ratios[row["group"]]

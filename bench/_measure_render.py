@@ -361,8 +361,8 @@ def _measure_pair(benchmark, bench: RenderBench, group: str, choices: tuple[str,
                   paired_order: tuple[str, str]) -> dict[str, Any]:
     """Time ``run(choice)``; check its image against the other choice's (rendered untimed if needed).
 
-    Images are kept in ``bench.images`` under ``("<image_prefix>-<choice>", width, height, spp)``. The last choice also records the paired ratio
-    ``paired_order[0] / paired_order[1]`` of back-to-back renders.
+    Images are kept in ``bench.images`` under ``("<image_prefix>-<choice>", width, height, spp)``. The last choice also records
+    the paired ratio ``paired_order[0] / paired_order[1]`` of back-to-back renders.
     """
     width, height = size
     result, seconds = timed_render(benchmark, lambda: run(choice))
@@ -399,7 +399,7 @@ class RenderResults:
     def finalize(self) -> None:
         """Write each row's ratio to the other side of its comparison into its ``extra_info``."""
         summary = self.summary()
-        for row, extra in zip(self.rows, self.extras):
+        for row, extra in zip(self.rows, self.extras, strict=True):
             if extra is None:
                 continue
             scene = summary[row["scene"]]

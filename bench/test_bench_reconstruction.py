@@ -68,7 +68,7 @@ def reconstruction_results(pytestconfig):
 def reconstruction_bench(reconstruction_results) -> ReconstructionBench:
     """Frame, trained nets and fast-inference choices, made once (untimed)."""
     bench = ReconstructionBench()
-    bench.options  # decided before any timing
+    assert set(bench.options) == {"denoise", "superres"}  # decided before any timing
     return bench
 
 

@@ -312,19 +312,19 @@ def build_naive(v0, v1, v2, triangle_ids, root_min, root_max, k_t, k_i, min_leaf
             grown_work = np.empty(max(2 * work.shape[0], needed), np.int32)
             grown_work[:end] = work[:end]
             work = grown_work
-        r = end
-        l = end + n_right
+        write_right = end
+        write_left = end + n_right
         for k in range(n):
             t = work[start + k]
             lo_k = tri_min[k, best_axis]
             hi_k = tri_max[k, best_axis]
             planar_here = lo_k == best_pos and hi_k == best_pos
             if hi_k > best_pos or planar_here:
-                work[r] = t
-                r += 1
+                work[write_right] = t
+                write_right += 1
             if lo_k < best_pos or planar_here:
-                work[l] = t
-                l += 1
+                work[write_left] = t
+                write_left += 1
         # Push right (bottom) then left (top).
         st_node[sp] = left + 1
         st_depth[sp] = depth + 1

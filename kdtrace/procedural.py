@@ -88,7 +88,7 @@ def heightfield_grid(
     x, y = np.meshgrid(np.linspace(-1.0, 1.0, cells + 1), np.linspace(-1.0, 1.0, cells + 1), indexing="ij")
     frequencies = rng.uniform(0.5, 4.0, size=(4, 2))
     phases = rng.uniform(0.0, 2.0 * np.pi, size=4)
-    z = sum(np.sin(np.pi * (f[0] * x + f[1] * y) + p) for f, p in zip(frequencies, phases)) * amplitude / 4.0
+    z = sum(np.sin(np.pi * (f[0] * x + f[1] * y) + p) for f, p in zip(frequencies, phases, strict=True)) * amplitude / 4.0
     points = np.stack([x, y, z], axis=-1)
     a, b, c, d = points[:-1, :-1], points[1:, :-1], points[1:, 1:], points[:-1, 1:]
     corners = np.concatenate([np.stack([a, b, c], -2).reshape(-1, 3, 3), np.stack([a, c, d], -2).reshape(-1, 3, 3)])

@@ -157,7 +157,7 @@ def _rotation(spec: object, origin: str) -> np.ndarray:
     spec = _check_keys(spec, {"axis", "degrees", "euler"}, "transform.rotate", origin)
     if "euler" in spec and spec.keys() == {"euler"}:
         matrix = np.eye(3)
-        for axis, degrees in zip(np.eye(3), _vector(spec["euler"], 3, "rotate.euler", origin)):
+        for axis, degrees in zip(np.eye(3), _vector(spec["euler"], 3, "rotate.euler", origin), strict=True):
             matrix = _axis_angle(axis, degrees) @ matrix
         return matrix
     if spec.keys() == {"axis", "degrees"}:
@@ -179,7 +179,8 @@ def _transformed(scene: Scene, spec: object, origin: str) -> Scene:
     """``scene`` scaled, then rotated, then translated (normals and winding kept consistent)."""
     spec = _check_keys(spec, _TRANSFORM_KEYS, "transform", origin)
     scale = spec.get("scale", 1.0)
-    scale = np.array(_vector([scale] * 3, 3, "transform.scale", origin) if isinstance(scale, int | float) else _vector(scale, 3, "transform.scale", origin))
+    scale = np.array(_vector([scale] * 3, 3, "transform.scale", origin) if isinstance(scale, int | float)
+                     else _vector(scale, 3, "transform.scale", origin))
     if np.any(scale == 0.0):
         raise SceneError(f"{origin}: transform.scale must not be zero")
     rotation = _rotation(spec["rotate"], origin) if "rotate" in spec else np.eye(3)

@@ -542,7 +542,7 @@ def _render_distributed(scene: Scene, profile: ReconstructionProfile, views: lis
     missing = [Unit(f"{root.name}-{view.name}", (profile, view.index, str(root), key, variant))
                for view in views if view.index not in records]
     for unit, result in zip(missing, run_units(missing, make_view, shared=scene, description=f"dataset {scene.name}",
-                                               **options)):
+                                               **options), strict=True):
         records[unit.args[1]] = result.value
     return [records[view.index] for view in views]
 

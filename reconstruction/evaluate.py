@@ -64,7 +64,7 @@ def pooled(predictions: Sequence[np.ndarray], references: Sequence[np.ndarray]) 
     if len(predictions) == 0 or len(predictions) != len(references):
         raise ValueError(f"need matching, non-empty image lists, got {len(predictions)} and {len(references)}")
     squared, count, per_image = 0.0, 0, []
-    for prediction, reference in zip(predictions, references):
+    for prediction, reference in zip(predictions, references, strict=True):
         prediction, reference = np.asarray(prediction, np.float64), np.asarray(reference, np.float64)
         if prediction.shape != reference.shape:
             raise ValueError(f"prediction {prediction.shape} and reference {reference.shape} differ in shape")
@@ -247,7 +247,7 @@ def to_markdown(table: pd.DataFrame) -> str:
         return str(value)
 
     lines = ["| " + " | ".join(table.columns) + " |", "|" + "---|" * len(table.columns)]
-    lines += ["| " + " | ".join(cell(c, v) for c, v in zip(table.columns, row)) + " |"
+    lines += ["| " + " | ".join(cell(c, v) for c, v in zip(table.columns, row, strict=True)) + " |"
               for row in table.itertuples(index=False)]
     return "\n".join(lines) + "\n"
 

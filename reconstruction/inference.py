@@ -157,7 +157,7 @@ def run_tiled(
         with _intra_op_threads(1), ThreadPoolExecutor(workers) as pool:
             results = list(pool.map(evaluate, cores))
     output = results[0].new_empty((1, results[0].shape[1], full_h, full_w))
-    for (y0, y1, x0, x1), result in zip(cores, results):
+    for (y0, y1, x0, x1), result in zip(cores, results, strict=True):
         output[..., y0:y1, x0:x1] = result
     return output[..., :height, :width]
 

@@ -144,7 +144,7 @@ class Denoiser(nn.Module):
             x = F.relu(conv(x))
             skips.append(x)
             x = F.max_pool2d(x, 2)
-        for conv, skip in zip(reversed(self.decoders), reversed(skips)):
+        for conv, skip in zip(reversed(self.decoders), reversed(skips), strict=True):
             x = F.relu(conv(F.interpolate(x, scale_factor=2, mode="nearest"))) + skip
         correction = self.out(x)[..., :height, :width]
         return noisy + correction if self.residual else correction

@@ -213,7 +213,7 @@ def _mean_psnr(prediction: torch.Tensor, target: torch.Tensor, to_linear: Transf
     """PSNR of every example (linear, clipped to [0, 1] by ``psnr``), as a list."""
     prediction = to_linear(prediction.detach()).permute(0, 2, 3, 1).numpy()
     target = to_linear(target).permute(0, 2, 3, 1).numpy()
-    return [min(psnr(p, t), 100.0) for p, t in zip(prediction, target)]
+    return [min(psnr(p, t), 100.0) for p, t in zip(prediction, target, strict=True)]
 
 
 def evaluate(model: nn.Module, dataset_split: tuple[torch.Tensor, torch.Tensor], loss_fn: nn.Module | None = None,

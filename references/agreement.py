@@ -484,7 +484,7 @@ def _ray_sets(scene: Scene, rays_per_kind: int, seed: int) -> dict[str, tuple[np
     }
     return {
         kind: makers[kind](scene, rays_per_kind, int(kind_seed))
-        for kind, kind_seed in zip(RAY_KINDS, seeds)
+        for kind, kind_seed in zip(RAY_KINDS, seeds, strict=True)
         if kind != "primary" or scene.cameras
     }
 

@@ -173,7 +173,7 @@ def sensor_dict(camera: Camera, width: int, height: int, bounds: tuple[np.ndarra
     """
     import mitsuba as mi
 
-    corners = np.array(np.meshgrid(*zip(*bounds), indexing="ij")).reshape(3, -1).T
+    corners = np.array(np.meshgrid(*zip(*bounds, strict=True), indexing="ij")).reshape(3, -1).T
     reach = float(np.max(np.linalg.norm(corners - np.asarray(camera.position), axis=1)))
     far_clip = 2.0 * max(reach, 1e-3)
     return {

@@ -436,7 +436,7 @@ def relmse_curve(scene, spps: tuple[int, ...], reference, max_depth: int, seeds,
     if len(seeds) != len(spps):
         raise ValueError(f"need one seed list per spp level, got {len(seeds)} for {len(spps)}")
     values = np.zeros(len(spps))
-    for i, (spp, level_seeds) in enumerate(zip(spps, seeds)):
+    for i, (spp, level_seeds) in enumerate(zip(spps, seeds, strict=True)):
         for seed in level_seeds:
             image = render(scene, spp=spp, max_depth=max_depth, seed=seed, width=width, height=height, aux=False,
                            tree=tree).rgb

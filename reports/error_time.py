@@ -699,7 +699,7 @@ def scene_markdown(row: dict, recon: ReconstructionProfile) -> str:
         for method, label in METHODS.items():
             part = table[table["method"] == method]
             body.append([label, *(f"{_format(p, '.1f')} / {_format(r, '.2g')}"
-                                            for p, r in zip(part["psnr"], part["relmse"]))])
+                                            for p, r in zip(part["psnr"], part["relmse"], strict=True))])
         lines += ["Equal time: PSNR dB / relMSE at common seconds (interpolated; — outside the measured range).", "",
                   tabulate(body, headers=["method", *(f"{s:g} s" for s in grid)], tablefmt="github"), ""]
     return "\n".join(lines)

@@ -28,8 +28,8 @@ from __future__ import annotations
 
 import dataclasses
 import importlib
-import json
 import importlib.util
+import json
 import time
 import warnings
 from pathlib import Path
@@ -174,7 +174,7 @@ def _index(parts: list[PartRun], profile_name: str, provenance: dict, gate_line:
     lines = [f"# kdtrace report: {profile_name} profile\n",
              f"{host['date']} on {host['cpu']} ({host['cores']} cores, {host['numba_threads']} numba threads), "
              f"Python {host['python']}. Versions: " + ", ".join(f"{k} {v}" for k, v in versions.items()) + ". "
-             f"Seeds: " + ", ".join(f"{k} {v}" for k, v in provenance["seeds"].items()) + ". "
+             "Seeds: " + ", ".join(f"{k} {v}" for k, v in provenance["seeds"].items()) + ". "
              "The resolved configuration is in [provenance.json](provenance.json).\n"]
     if gate_line:
         lines.append(f"Regression gate: **{gate_line}** ([gate.md](gate.md)).\n")

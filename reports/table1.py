@@ -273,7 +273,7 @@ def generate(config: Config, profile_name: str, out_dir: Path, fresh: bool = Fal
         units = [Unit(f"table1-row-{name}-{_row_key(name, config, profile_name)[:16]}", (name,)) for name in missing]
         for name, result in zip(missing, run_units(units, _remote_record, address, shared=(config, profile_name),
                                                    progress=progress, description=f"Table 1 ({profile_name})",
-                                                   config=config.distributed)):
+                                                   config=config.distributed), strict=True):
             records[name] = result.value
             records[name]["row"]["worker"] = result.worker
             _write_record(out_dir, name, records[name])
@@ -337,9 +337,12 @@ def markdown_table(table: pd.DataFrame) -> str:
             "reduction": f"{100 * row['reference_reduction']:.1f}%",
             "paper reduction": f"{100 * (1 - paper['local_references'] / paper['naive_references']):.1f}%" if paper else "",
             "MB naive/local": _pair(row["naive_tree_bytes"] / 1e6, row["local_tree_bytes"] / 1e6, 1),
-            "build s naive/local": _pair(row["naive_build_seconds"], row["local_build_seconds"]) + (" (cached)" if row["local_cache_hit"] else ""),
-            "primary Mrays/s naive/local/Embree": f"{row['primary_mrays_naive']:.2f} / {row['primary_mrays_local']:.2f} / {row['primary_mrays_embree']:.2f}",
-            "incoherent Mrays/s naive/local/Embree": f"{row['incoherent_mrays_naive']:.2f} / {row['incoherent_mrays_local']:.2f} / {row['incoherent_mrays_embree']:.2f}",
+            "build s naive/local": (_pair(row["naive_build_seconds"], row["local_build_seconds"])
+                                    + (" (cached)" if row["local_cache_hit"] else "")),
+            "primary Mrays/s naive/local/Embree": f"{row['primary_mrays_naive']:.2f} / {row['primary_mrays_local']:.2f} / "
+                                                  f"{row['primary_mrays_embree']:.2f}",
+            "incoherent Mrays/s naive/local/Embree": f"{row['incoherent_mrays_naive']:.2f} / {row['incoherent_mrays_local']:.2f} / "
+                                                     f"{row['incoherent_mrays_embree']:.2f}",
             "frame s naive/local": _pair(row["frame_seconds_naive"], row["frame_seconds_local"], 3),
             "paper frame s naive/local": _pair(paper["naive_frame_seconds"], paper["local_frame_seconds"]) if paper else "",
             "local/naive frame speed": f"{row['frame_local_over_naive']:.2f}",

@@ -2,13 +2,12 @@
 
 from __future__ import annotations
 
-
 from kdtrace._kdtree_build import LEAF
 
 
 def pull_up_reference(node_meta, node_start, node_count, refs):
     """Algorithm 3's pull-up with Python sets: per node, the triangles it holds."""
-    held = [set(refs[s : s + c].tolist()) for s, c in zip(node_start, node_count)]
+    held = [set(refs[s : s + c].tolist()) for s, c in zip(node_start, node_count, strict=True)]
     for node in range(len(node_meta) - 1, -1, -1):
         if node_meta[node] == LEAF:
             continue

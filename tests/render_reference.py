@@ -14,9 +14,7 @@ import math
 
 import numpy as np
 
-from kdtrace._render_kernels import (
-    CAMERA_DIMS, DIMS_PER_BOUNCE, RAY_EPSILON, SHADOW_EPSILON, fresnel_dielectric, sample_key, uniform,
-)
+from kdtrace._render_kernels import CAMERA_DIMS, DIMS_PER_BOUNCE, RAY_EPSILON, SHADOW_EPSILON, fresnel_dielectric, sample_key, uniform
 from kdtrace.oracle import intersect_brute_force
 from kdtrace.rays import pinhole_directions
 from kdtrace.scene import Scene

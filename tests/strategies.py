@@ -316,7 +316,8 @@ def make_rays(kind: str, scene: Scene, tree, n: int, seed: int) -> tuple[np.ndar
         directions[axial] = _signed_zero(rng, (axial.sum(), 3))
         directions[rows[axial], axis[axial]] = -np.sign(shift[axial])
         aimed = mode == 1
-        origins[aimed] = vertex[aimed] - rng.uniform(0.1, 1.0, size=(aimed.sum(), 1)) * size * directions[aimed] / np.linalg.norm(directions[aimed], axis=1, keepdims=True)
+        origins[aimed] = vertex[aimed] - (rng.uniform(0.1, 1.0, size=(aimed.sum(), 1)) * size * directions[aimed]
+                                          / np.linalg.norm(directions[aimed], axis=1, keepdims=True))
         on = mode == 2
         origins[on] = vertex[on]
     elif kind == "edge":

@@ -111,7 +111,7 @@ def test_thread_count_does_not_change_results(soup, soup_rays, monkeypatch):
     origins, directions = soup_rays
     one = EmbreeIntersector(soup, threads=1)
     four = EmbreeIntersector(soup, threads=4)
-    for a, b in zip(one.intersect(origins, directions), four.intersect(origins, directions)):
+    for a, b in zip(one.intersect(origins, directions), four.intersect(origins, directions), strict=True):
         np.testing.assert_array_equal(a, b)
     np.testing.assert_array_equal(one.occluded(origins, directions, 0.5), four.occluded(origins, directions, 0.5))
 

@@ -56,12 +56,12 @@ def write_ply(path: Path, fmt: str, faces=FACES, vertices=VERTICES, extra_header
     rows = [(*v, 0.0, 0.0, 2.0, v[0], v[1]) for v in vertices]
     if fmt == "ascii":
         body = "".join(" ".join(f"{x:g}" for x in row) + "\n" for row in rows)
-        body += "".join(f"{len(f)} {' '.join(map(str, f))} {m}\n" for f, m in zip(faces, materials))
+        body += "".join(f"{len(f)} {' '.join(map(str, f))} {m}\n" for f, m in zip(faces, materials, strict=True))
         path.write_bytes((header + body).encode())
     else:
         order = "<" if fmt == "binary_little_endian" else ">"
         body = b"".join(struct.pack(order + "8f", *row) for row in rows)
-        body += b"".join(struct.pack(f"{order}B{len(f)}ii", len(f), *f, m) for f, m in zip(faces, materials))
+        body += b"".join(struct.pack(f"{order}B{len(f)}ii", len(f), *f, m) for f, m in zip(faces, materials, strict=True))
         path.write_bytes(header.encode() + body)
     return path
 
@@ -102,7 +102,8 @@ def test_cached_ply_is_identical(shared_scenes, isolated_cache):
     ("make", "message"),
     [
         (lambda p: p.write_bytes(b"solid nothing\n"), "not a PLY file"),
-        (lambda p: p.write_bytes(b"ply\nformat ascii 1.0\nelement vertex 0\nproperty float x\nproperty float y\nproperty float z\nend_header\n"), "no 'face' element"),
+        (lambda p: p.write_bytes(b"ply\nformat ascii 1.0\nelement vertex 0\n"
+                                 b"property float x\nproperty float y\nproperty float z\nend_header\n"), "no 'face' element"),
         (lambda p: p.write_bytes(b"ply\nformat binary_middle_endian 1.0\nend_header\n"), ":2: unsupported PLY format"),
         (lambda p: p.write_bytes(b"ply\nformat ascii 1.0\nelement vertex 1\nproperty quad x\nend_header\n"), ":4: malformed property"),
         (lambda p: write_ply(p, "ascii", faces=[[0, 1, 9], [0, 1, 4]]), "face 0 has vertex index 9 outside 0..4"),
@@ -113,7 +114,8 @@ def test_cached_ply_is_identical(shared_scenes, isolated_cache):
         (lambda p: p.write_bytes(write_ply(p, "ascii").read_bytes().replace(b"\n1 1 0 ", b"\n1 x 0 ")), "non-numeric 'vertex'"),
         (lambda p: p.write_bytes(write_ply(p, "ascii").read_bytes()[:-8]), "malformed 'face' record"),
     ],
-    ids=["magic", "no faces", "format", "property type", "index", "negative index", "short face", "nan", "truncated", "non-numeric", "short record"],
+    ids=["magic", "no faces", "format", "property type", "index", "negative index", "short face", "nan", "truncated", "non-numeric",
+         "short record"],
 )
 def test_bad_ply_raises_scene_error_naming_the_file(tmp_path, make, message):
     path = tmp_path / "bad.ply"

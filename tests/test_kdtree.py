@@ -40,7 +40,8 @@ def big_and_small_triangles() -> Scene:
 
 
 @pytest.mark.parametrize("variant", VARIANTS)
-@pytest.mark.parametrize("config", [KDTreeConfig(), KDTreeConfig(clip_triangles=True), KDTreeConfig(axis_selection="cycle", min_leaf_size=1)])
+@pytest.mark.parametrize("config", [KDTreeConfig(), KDTreeConfig(clip_triangles=True),
+                                    KDTreeConfig(axis_selection="cycle", min_leaf_size=1)])
 def test_closest_hit_matches_oracle(variant, config, big_and_small_triangles):
     scene = big_and_small_triangles
     tree = build_kdtree(scene, variant, config, cache=False)

@@ -157,7 +157,8 @@ def check_intersect(case: StressScene, trees: dict, origins, directions, tmin=0.
         same = np.flatnonzero((ours[1] == theirs[1]) & (ours[1] >= 0))
         same = same[~in_plane(geometry, ours[1][same], origins[same], directions[same], theirs[0][same])]
         cos = exact_hits(geometry, ours[1][same], origins[same], directions[same])["cos"]
-        slack = np.maximum(1e-9 * theirs[0][same], 1e-6 * t_tolerance(origins[same], directions[same], theirs[0][same], cos, geometry.scale))
+        slack = np.maximum(1e-9 * theirs[0][same],
+                           1e-6 * t_tolerance(origins[same], directions[same], theirs[0][same], cos, geometry.scale))
         off = same[np.abs(ours[0][same] - theirs[0][same]) > slack]
         assert len(off) == 0, "same triangle, different t: " + _describe(case, variant, off, origins, directions, ours, theirs)
         if exact:
@@ -291,7 +292,7 @@ def test_rays_in_split_planes_through_shared_edges(case, config, seed):
 
 def test_split_plane_edge_rays_are_not_vacuous():
     """The grid scenes do have edges in split planes, so the property above traces them."""
-    from tests.strategies import _edges_in_split_planes, _corners, build_scene
+    from tests.strategies import _corners, _edges_in_split_planes, build_scene
 
     scene = build_scene("heightfield", 100, 5)
     tree = build_trees(scene, None)["local"]

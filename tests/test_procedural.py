@@ -23,7 +23,8 @@ def test_deterministic_from_the_seed(name):
 
 
 @pytest.mark.parametrize("name", GENERATORS)
-@pytest.mark.parametrize(("scale", "offset"), [(1.0, (0, 0, 0)), (1e-4, (0, 0, 0)), (1e5, (0, 0, 0)), (1e-2, (1e3, -2e3, 5e2)), (10.0, (1e5, 1e5, 1e5))])
+@pytest.mark.parametrize(("scale", "offset"), [(1.0, (0, 0, 0)), (1e-4, (0, 0, 0)), (1e5, (0, 0, 0)), (1e-2, (1e3, -2e3, 5e2)),
+                                               (10.0, (1e5, 1e5, 1e5))])
 def test_placement_camera_and_sky(name, scale, offset, camera_coverage):
     scene = GENERATORS[name](seed=1, scale=scale, offset=offset)
     unit = GENERATORS[name](seed=1)

@@ -32,7 +32,7 @@ def scene():
 @pytest.mark.parametrize("make", KINDS)
 def test_deterministic_valid_float32(scene, make):
     first, again, other = make(scene, 300, 5), make(scene, 300, 5), make(scene, 300, 6)
-    for a, b in zip(first, again):
+    for a, b in zip(first, again, strict=True):
         np.testing.assert_array_equal(a, b)
     assert not np.array_equal(first[1], other[1])
     origins, directions = first[:2]

@@ -174,7 +174,7 @@ def test_superres_pairs_have_matching_shapes_and_blurrier_inputs(dataset):
     pairs = data.superres_data(QUICK, [dataset])
     size = QUICK.superres_crop_size
     photos = (len(data.TRAIN_PHOTOS), len(data.VALIDATION_PHOTOS), 0)
-    for split, extra in zip(data.SPLITS, photos):
+    for split, extra in zip(data.SPLITS, photos, strict=True):
         count = (extra + len(dataset.views(split))) * QUICK.superres_crops_per_image
         assert pairs[split]["input"].shape == pairs[split]["target"].shape == (count, 3, size, size)
         assert pairs[split]["input"].dtype == np.float32

@@ -90,7 +90,7 @@ def test_camera_matches_numpy_pinhole(cbox):
     camera = dataclasses.replace(cbox.camera, up=(0.1, 1.0, 0.2))
     cam = _camera_array(camera, 40, 30)
     x, y = np.array([0.0, 13.25, 39.9]), np.array([0.0, 7.5, 29.99])
-    ours = np.array([kernels.camera_direction(cam, 40, 30, a, b) for a, b in zip(x, y)])
+    ours = np.array([kernels.camera_direction(cam, 40, 30, a, b) for a, b in zip(x, y, strict=True)])
     np.testing.assert_allclose(ours, pinhole_directions(camera, x, y, 40, 30), rtol=0, atol=1e-15)
 
 
@@ -107,7 +107,7 @@ def test_image_independent_of_threads_and_tiles(cbox):
     finally:
         numba.set_num_threads(threads)
     for other in images[1:]:
-        for a, b in zip(images[0], other):
+        for a, b in zip(images[0], other, strict=True):
             assert np.array_equal(a, b)
     again = render(cbox, spp=2, max_depth=3, seed=SEED + 1, width=24, height=20, tree=tree)
     assert not np.array_equal(again.rgb, images[0][0])

@@ -126,7 +126,7 @@ def test_common_seconds_grid():
 def synthetic_points() -> pd.DataFrame:
     """Mitsuba: PSNR = 20 + 10 log10(t / 0.01) at 0.01..0.64 s; ours + denoiser: 31 dB at 0.05 s (4 spp)."""
     rows = []
-    for spp, t in zip((1, 2, 4, 8, 16, 32, 64), 0.01 * 2.0 ** np.arange(7)):
+    for spp, t in zip((1, 2, 4, 8, 16, 32, 64), 0.01 * 2.0 ** np.arange(7), strict=True):
         rows.append({"method": "mitsuba", "spp": spp, "seconds": t, "psnr": 20 + 10 * math.log10(t / 0.01),
                      "relmse": 0.1 * 0.01 / t})
     for spp, t, psnr in ((1, 0.04, 29.0), (4, 0.05, 31.0), (16, 0.08, 33.0)):

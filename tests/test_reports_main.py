@@ -157,7 +157,7 @@ def test_table1_and_agreement_end_to_end_with_a_backend_note(tmp_path, monkeypat
     real_compare = ztest.compare_scene
 
     def compare_with_fallback(*args, **kwargs):
-        warnings.warn("Mitsuba llvm_ad_rgb unusable, falling back to scalar_rgb (test)", LLVMFallbackWarning)
+        warnings.warn("Mitsuba llvm_ad_rgb unusable, falling back to scalar_rgb (test)", LLVMFallbackWarning, stacklevel=2)
         return real_compare(*args, **kwargs)
 
     monkeypatch.setattr(ztest, "compare_scene", compare_with_fallback)

@@ -167,7 +167,7 @@ def _convert_values(found: _Lines, keyword: str, path: Path) -> np.ndarray:
     try:
         flat = np.array(tokens, dtype=np.float64)
     except ValueError:
-        for number, start, count in zip(found.line_numbers[keyword], np.cumsum(counts) - counts, counts):
+        for number, start, count in zip(found.line_numbers[keyword], np.cumsum(counts) - counts, counts, strict=True):
             for token in tokens[start : start + count]:
                 try:
                     float(token)
@@ -191,7 +191,7 @@ def _slow_face_check(found: _Lines, form: int, path: Path) -> NoReturn:
     fields = _FORM_FIELDS[form]
     tokens = found.form_tokens[form]
     offset = 0
-    for number, count, face_form in zip(found.face_line, found.face_corners, found.face_form):
+    for number, count, face_form in zip(found.face_line, found.face_corners, found.face_form, strict=True):
         if face_form != form:
             continue
         for corner in tokens[offset : offset + count]:
