@@ -196,7 +196,7 @@ class CheckedAccelerator:
 class CheckedDenoiser:
     """A denoiser whose every output is validated (see :func:`load_denoiser`)."""
 
-    def __init__(self, spec: str, inner: Callable) -> None:
+    def __init__(self, spec: str, inner: Denoiser) -> None:
         if not callable(inner):
             raise PluginError(f"plug-in {spec!r}: the factory returned a {type(inner).__name__}, which is not callable")
         self.spec = spec
