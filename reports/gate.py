@@ -26,9 +26,18 @@ but not in the baseline is listed as "new" and does not fail, so a new report pa
 land before its baseline. A metric whose kind changed fails. Absolute seconds are never
 gated: only ratios measured within one run.
 
-The baseline file is sorted, indented JSON of ``{"profile": ..., "metrics": {name:
-{"kind", "value", "note"}}}`` with ratios rounded to 4 significant digits, so that its
-diff after ``kdtrace update-baseline`` shows exactly what changed.
+The baseline file is sorted, indented JSON of ``{"cpu": ..., "profile": ..., "metrics":
+{name: {"kind", "value", "note"}}}`` with ratios rounded to 4 significant digits, so that
+its diff after ``kdtrace update-baseline`` shows exactly what changed.
+
+One baseline per CPU model. Training the networks with fixed seeds reproduces its PSNRs
+on one CPU model (within 0.005 dB on an Intel Xeon), not across models: an AMD EPYC run
+of the same commit, with bit-identical renders, trained to PSNRs 3.5 dB lower to 0.6 dB
+higher than the Xeon baseline (2026-12-01). So ``reports/baseline/PROFILE.SLUG.json``,
+recorded on the CPU model whose name gives ``SLUG`` (:func:`cpu_slug`), is used when it
+exists for the machine's CPU, and ``PROFILE.json`` (whose ``cpu`` says where it was
+recorded) otherwise; ``update-baseline`` writes the machine's own file when
+``PROFILE.json`` was recorded on another model.
 """
 
 from __future__ import annotations
@@ -37,6 +46,7 @@ import dataclasses
 import fnmatch
 import json
 import math
+import re
 from collections.abc import Iterable
 from pathlib import Path
 
@@ -44,6 +54,7 @@ from tabulate import tabulate
 
 from kdtrace.cache import atomic_write_bytes
 from kdtrace.config import GateConfig
+from kdtrace.provenance import cpu_model
 from reports.metrics import Metric, read_metrics
 
 #: Where the committed baselines live, one ``PROFILE.json`` each.
@@ -115,9 +126,34 @@ def read_run(out_dir: str | Path) -> dict[str, Metric]:
     return _by_name(metrics, f"{Path(out_dir) / 'metrics'}")
 
 
-def baseline_path(profile_name: str, directory: Path | None = None) -> Path:
-    """The committed baseline of a profile (in :data:`BASELINE_DIR` unless ``directory`` is given)."""
-    return Path(BASELINE_DIR if directory is None else directory) / f"{profile_name}.json"
+def cpu_slug(cpu: str) -> str:
+    """File-name form of a CPU model name: ``"AMD EPYC"`` -> ``"amd-epyc"``."""
+    return re.sub(r"[^a-z0-9]+", "-", cpu.lower()).strip("-")
+
+
+def baseline_path(profile_name: str, directory: Path | None = None, cpu: str | None = None) -> Path:
+    """The committed baseline of a profile (in :data:`BASELINE_DIR` unless ``directory`` is given).
+
+    With ``cpu``, the baseline recorded on that CPU model (``PROFILE.SLUG.json``) when it
+    exists, else the profile's general one (``PROFILE.json``).
+    """
+    directory = Path(BASELINE_DIR if directory is None else directory)
+    if cpu is not None:
+        specific = directory / f"{profile_name}.{cpu_slug(cpu)}.json"
+        if specific.exists():
+            return specific
+    return directory / f"{profile_name}.json"
+
+
+def baseline_cpu(path: str | Path) -> str | None:
+    """The CPU model a baseline file was recorded on (None when it does not say or does not exist)."""
+    path = Path(path)
+    if not path.exists():
+        return None
+    try:
+        return json.loads(path.read_text()).get("cpu")
+    except (json.JSONDecodeError, AttributeError):
+        return None
 
 
 def read_baseline(path: str | Path) -> dict[str, Metric]:
@@ -156,16 +192,17 @@ def _rounded(value: float | int | bool) -> float | int | bool:
     return round(value, BASELINE_DIGITS - 1 - math.floor(math.log10(abs(value))))
 
 
-def baseline_document(profile_name: str, metrics: dict[str, Metric]) -> str:
+def baseline_document(profile_name: str, metrics: dict[str, Metric], cpu: str | None = None) -> str:
     """The baseline's text: sorted, indented JSON (stable, so diffs show only changes)."""
     entries = {name: {"kind": m.kind, "value": _rounded(m.value), **({"note": m.note} if m.note else {})}
                for name, m in sorted(metrics.items())}
-    return json.dumps({"profile": profile_name, "metrics": entries}, indent=1, sort_keys=True) + "\n"
+    document = {"profile": profile_name, "metrics": entries, **({"cpu": cpu} if cpu else {})}
+    return json.dumps(document, indent=1, sort_keys=True) + "\n"
 
 
-def write_baseline(path: str | Path, profile_name: str, metrics: dict[str, Metric]) -> Path:
+def write_baseline(path: str | Path, profile_name: str, metrics: dict[str, Metric], cpu: str | None = None) -> Path:
     """Write the baseline atomically (see :func:`baseline_document`)."""
-    return atomic_write_bytes(Path(path), baseline_document(profile_name, metrics).encode())
+    return atomic_write_bytes(Path(path), baseline_document(profile_name, metrics, cpu).encode())
 
 
 def _compare_one(name: str, before: Metric, now: Metric, config: GateConfig) -> Verdict:
@@ -278,7 +315,7 @@ def run_gate(out_dir: str | Path, profile_name: str, config: GateConfig, baselin
         Selects ``reports/baseline/PROFILE.json`` unless ``baseline`` is given.
     config : GateConfig
     baseline : str or Path, optional
-        Another baseline file.
+        Another baseline file (default: :func:`baseline_path` for this machine's CPU model).
     skip : iterable of str
         Baseline metric patterns not expected in this run (see :func:`compare`).
 
@@ -287,10 +324,12 @@ def run_gate(out_dir: str | Path, profile_name: str, config: GateConfig, baselin
     (bool, str)
         Whether the gate passed, and the text it printed into ``gate.md`` (table and summary).
     """
-    path = Path(baseline) if baseline is not None else baseline_path(profile_name)
+    path = Path(baseline) if baseline is not None else baseline_path(profile_name, cpu=cpu_model())
     verdicts = compare(read_baseline(path), read_run(out_dir), config, skip)
     passed = not any(v.failed for v in verdicts)
-    text = (f"# Regression gate ({profile_name})\n\nBaseline: `{path}`. Ratio tolerance {config.ratio_tolerance:.0%} "
+    recorded = baseline_cpu(path)
+    text = (f"# Regression gate ({profile_name})\n\nBaseline: `{path}` (recorded on {recorded or 'an unrecorded CPU'}; "
+            f"this machine: {cpu_model()}). Ratio tolerance {config.ratio_tolerance:.0%} "
             f"unless overridden ({config.ratio_tolerances or 'no overrides'}); PSNR tolerance "
             f"{config.psnr_tolerance_db} dB.\n\n{format_table(verdicts)}\n\n{summary(verdicts)}\n")
     atomic_write_bytes(Path(out_dir) / "gate.md", text.encode())
@@ -298,7 +337,10 @@ def run_gate(out_dir: str | Path, profile_name: str, config: GateConfig, baselin
 
 
 def update_baseline(out_dir: str | Path, profile_name: str, baseline: str | Path | None = None) -> tuple[Path, str]:
-    """Rewrite the profile's baseline from the run in ``out_dir``.
+    """Rewrite the profile's baseline from the run in ``out_dir``, recording this machine's CPU model.
+
+    Without ``baseline``: ``PROFILE.json`` when it was recorded on this CPU model (or does
+    not exist yet), else this model's own ``PROFILE.SLUG.json``.
 
     Returns
     -------
@@ -306,11 +348,17 @@ def update_baseline(out_dir: str | Path, profile_name: str, baseline: str | Path
         The baseline written, and a one-line account of what changed (added, removed,
         changed metrics) against the previous baseline.
     """
-    path = Path(baseline) if baseline is not None else baseline_path(profile_name)
+    cpu = cpu_model()
+    if baseline is not None:
+        path = Path(baseline)
+    else:
+        general = baseline_path(profile_name)
+        same_model = not general.exists() or baseline_cpu(general) == cpu
+        path = general if same_model else general.with_name(f"{profile_name}.{cpu_slug(cpu)}.json")
     run = read_run(out_dir)
     previous = read_baseline(path) if path.exists() else {}
     old_text = baseline_document(profile_name, previous) if previous else ""
-    write_baseline(path, profile_name, run)
+    write_baseline(path, profile_name, run, cpu)
     stored = read_baseline(path)
     added = sorted(set(stored) - set(previous))
     removed = sorted(set(previous) - set(stored))

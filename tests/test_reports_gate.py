@@ -114,7 +114,8 @@ def test_run_gate_and_update_baseline_round_trip(tmp_path):
     assert path == baseline_file and "6 added" in note
     text = baseline_file.read_text()
     assert json.loads(text)["profile"] == "quick"
-    assert text == gate.baseline_document("quick", gate.read_baseline(baseline_file))  # stable: rewriting changes nothing
+    # stable: rewriting changes nothing
+    assert text == gate.baseline_document("quick", gate.read_baseline(baseline_file), gate.baseline_cpu(baseline_file))
     passed, report = gate.run_gate(out, "quick", CONFIG, baseline=baseline_file)
     assert passed and (out / "gate.md").read_text() == report
 
@@ -168,3 +169,27 @@ def test_gate_config_validates_and_matches_overrides():
         GateConfig(ratio_tolerance=1.5)
     with pytest.raises(ValueError):
         GateConfig(psnr_tolerance_db=-1.0)
+
+
+def test_each_cpu_model_gets_its_own_baseline(tmp_path, monkeypatch):
+    """Fixed-seed training reproduces on one CPU model only: the gate reads, and update-baseline
+    writes, the machine's own PROFILE.SLUG.json once PROFILE.json was recorded on another model."""
+    out = tmp_path / "run"
+    write_metrics(out, "t", BASELINE.values())
+    monkeypatch.setattr(gate, "BASELINE_DIR", tmp_path)
+    monkeypatch.setattr(gate, "cpu_model", lambda: "Intel(R) Xeon(R) Processor")
+    path, _ = gate.update_baseline(out, "quick")
+    assert path == tmp_path / "quick.json" and gate.baseline_cpu(path) == "Intel(R) Xeon(R) Processor"
+
+    monkeypatch.setattr(gate, "cpu_model", lambda: "AMD EPYC")
+    assert gate.baseline_path("quick", cpu="AMD EPYC") == tmp_path / "quick.json"  # none of its own yet
+    write_metrics(out, "t", _changed("t/a/refs", 1200).values())
+    passed, report = gate.run_gate(out, "quick", CONFIG)
+    assert not passed and "recorded on Intel(R) Xeon(R) Processor; this machine: AMD EPYC" in report
+    path, note = gate.update_baseline(out, "quick")
+    assert path == tmp_path / "quick.amd-epyc.json" and "(new baseline)" in note
+    assert gate.read_baseline(tmp_path / "quick.json")["t/a/refs"].value == 1000  # the Xeon one is kept
+    assert gate.baseline_path("quick", cpu="AMD EPYC") == path
+    passed, report = gate.run_gate(out, "quick", CONFIG)
+    assert passed and "quick.amd-epyc.json" in report
+    assert gate.cpu_slug("Intel(R) Xeon(R) Processor") == "intel-r-xeon-r-processor"
