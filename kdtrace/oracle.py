@@ -10,8 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-#: The ray-triangle tests of :func:`intersect_brute_force` (as ``KDTreeConfig.triangle_test``).
-TRIANGLE_TESTS = ("watertight", "moller-trumbore")
+from kdtrace.config import TRIANGLE_TESTS
 
 
 def as_float64_rays(origins: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -21,6 +20,13 @@ def as_float64_rays(origins: np.ndarray, directions: np.ndarray) -> tuple[np.nda
     if origins.ndim != 2 or origins.shape[1] != 3 or directions.shape != origins.shape:
         raise ValueError(f"origins and directions must both have shape (N, 3), got {origins.shape} and {directions.shape}")
     return origins, directions
+
+
+def _kept_corners(vertices: np.ndarray, triangles: np.ndarray, skip: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """(T', 3, 3) float64 corners of the triangles not skipped, and their indices into ``triangles``."""
+    corners = np.asarray(vertices, dtype=np.float64)[np.asarray(triangles)]
+    keep = np.arange(len(corners)) if skip is None else np.flatnonzero(~np.asarray(skip, dtype=bool))
+    return corners[keep], keep
 
 
 def moller_trumbore(corners: np.ndarray, o: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, ...]:
@@ -114,9 +120,7 @@ def intersect_brute_force(
         raise ValueError(f"unknown triangle test {triangle_test!r}; choose one of {TRIANGLE_TESTS}")
     test = watertight if triangle_test == "watertight" else moller_trumbore
     origins, directions = as_float64_rays(origins, directions)
-    corners = np.asarray(vertices, dtype=np.float64)[np.asarray(triangles)]
-    keep = np.arange(len(corners)) if skip is None else np.flatnonzero(~np.asarray(skip, dtype=bool))
-    corners = corners[keep]
+    corners, keep = _kept_corners(vertices, triangles, skip)
     n = len(origins)
     tmax = np.broadcast_to(np.asarray(tmax, dtype=np.float64), (n,))
     t_out = np.full(n, np.inf)
@@ -156,13 +160,12 @@ def nearest_hits_fast(
 
     origins, directions = as_float64_rays(origins, directions)
     n = len(origins)
-    corners = np.asarray(vertices, dtype=np.float64)[np.asarray(triangles)]
-    keep = np.arange(len(corners)) if skip is None else np.flatnonzero(~np.asarray(skip, dtype=bool))
+    corners, keep = _kept_corners(vertices, triangles, skip)
     t = np.full(n, np.inf)
     tri = np.full(n, -1, dtype=np.int64)
     if n == 0 or len(keep) == 0:
         return t, tri
-    soa = np.ascontiguousarray(corners[keep].transpose(1, 2, 0))  # (vertex, axis, triangle)
+    soa = np.ascontiguousarray(corners.transpose(1, 2, 0))  # (vertex, axis, triangle)
     tmin = np.ascontiguousarray(np.broadcast_to(np.asarray(tmin, dtype=np.float64), (n,)))
     tmax = np.ascontiguousarray(np.broadcast_to(np.asarray(tmax, dtype=np.float64), (n,)))
     _oracle_kernels.nearest_hits(soa, origins, directions, tmin, tmax, t, tri)
