@@ -267,10 +267,16 @@ class Comparison:
                 OURS_EXACT: int(self.ours_exact.sum())}
 
 
-def _start_tolerance(geometry: TriangleGeometry, origins: np.ndarray, directions: np.ndarray) -> np.ndarray:
-    """The smallest distance tolerance at t = 0 (|cos theta| = 1), where the oracle's search for a
-    wrong answer starts: a hit on the surface a ray starts from would hide any farther one."""
-    return t_tolerance(origins, directions, np.zeros(len(origins)), np.ones(len(origins)), geometry.scale)
+def _clear_hit_before(scene: Scene, geometry: TriangleGeometry, origins: np.ndarray, directions: np.ndarray,
+                      tmax: np.ndarray, limit: np.ndarray) -> np.ndarray:
+    """Whether the oracle's nearest hit lies beyond ``t = 0`` and before ``limit`` by more than its tolerance.
+
+    The search starts at the smallest distance tolerance at t = 0 (|cos theta| = 1): a hit on
+    the surface a ray starts from would hide any farther one.
+    """
+    start = t_tolerance(origins, directions, np.zeros(len(origins)), np.ones(len(origins)), geometry.scale)
+    t, _, tol = _oracle(scene, geometry, origins, directions, start, tmax)
+    return (t - tol > 0.0) & (t + tol < limit)
 
 
 def _oracle(scene: Scene, geometry: TriangleGeometry, origins: np.ndarray, directions: np.ndarray,
@@ -356,8 +362,7 @@ def compare_hits(
             return np.where(tri_x >= 0, np.abs(gap) <= tol_x, tri < 0)
 
         ours_exact[rays] = matches(t_o[rays], tri_o[rays]) & ~matches(t_t[rays], tri_t[rays])
-        t_x, _, tol_x = _oracle(scene, geometry, o, d, _start_tolerance(geometry, o, d), end)
-        wrong = (t_x - tol_x > 0.0) & (t_x + tol_x < np.minimum(t_o[rays], end))
+        wrong = _clear_hit_before(scene, geometry, o, d, end, np.minimum(t_o[rays], end))
         labels[rays[wrong]] = WRONG
         rays = rays[~wrong]
     if len(rays):
@@ -447,8 +452,7 @@ def compare_occlusion(
         blocked = _oracle(scene, geometry, o, d, 0.0, end)[1] >= 0
         ours_exact[differ] = ours[differ] == blocked
         # A blocker that ours missed, clear of both ends by its own distance tolerance.
-        t_x, _, tol_x = _oracle(scene, geometry, o, d, _start_tolerance(geometry, o, d), end)
-        wrong = ~ours[differ] & (t_x - tol_x > 0.0) & (t_x + tol_x < end)
+        wrong = ~ours[differ] & _clear_hit_before(scene, geometry, o, d, end, end)
         labels[differ[wrong]] = WRONG
         differ = differ[~wrong]
     solid = np.flatnonzero(~geometry.degenerate)
