@@ -27,10 +27,12 @@ import numba
 import numpy as np
 from tabulate import tabulate
 
+from bench._plugins import is_plugin, jsonable, plugin_spec
 from kdtrace import provenance
 from kdtrace.cache import atomic_write_bytes
 from kdtrace.kdtree import VARIANTS, KDTree, build_kdtree
 from kdtrace.oracle import intersect_brute_force
+from kdtrace.plugins import CheckedAccelerator, load_accelerator
 from kdtrace.rays import primary_rays, random_rays
 from kdtrace.scene import Scene
 from references.agreement import UNEXPLAINED, WRONG, TriangleGeometry, compare_hits, compare_occlusion
@@ -159,8 +161,30 @@ class SceneBench:
         """Our KD-tree of ``variant`` (from the on-disk cache when present)."""
         return self._get(("tree", variant), lambda: build_kdtree(self.scene, variant))
 
-    def intersector(self, name: str) -> EmbreeIntersector | KDTree:
-        """``"embree"`` or one of our tree variants."""
+    def plugin(self, spec: str) -> CheckedAccelerator:
+        """The plug-in accelerator ``spec`` built on the scene (untimed; its build time in ``plugin_load_seconds``).
+
+        Raises
+        ------
+        kdtrace.plugins.PluginError
+            The factory cannot be imported, raises, or returns no accelerator.
+        """
+        def load() -> CheckedAccelerator:
+            start = time.perf_counter()
+            accelerator = load_accelerator(spec, self.scene)
+            self._cache[("plugin_load_seconds", spec)] = time.perf_counter() - start
+            return accelerator
+
+        return self._get(("plugin", spec), load)
+
+    def plugin_load_seconds(self, spec: str) -> float:
+        """Seconds the factory of the plug-in ``spec`` took on this scene (:meth:`plugin` first)."""
+        return self._cache[("plugin_load_seconds", spec)]
+
+    def intersector(self, name: str) -> EmbreeIntersector | KDTree | CheckedAccelerator:
+        """``"embree"``, one of our tree variants, or a plug-in accelerator ``"plugin:SPEC"``."""
+        if is_plugin(name):
+            return self.plugin(plugin_spec(name))
         return self.embree if name == "embree" else self.tree(name)
 
     def ray_batch(self, kind: str) -> RayBatch:
@@ -197,8 +221,10 @@ def timed_call(benchmark, fn: Callable[[], Any], rounds: int, warmup_rounds: int
     return result, min(timed)
 
 
-def run_query(intersector: EmbreeIntersector | KDTree, batch: RayBatch, query: str):
+def run_query(intersector: EmbreeIntersector | KDTree | CheckedAccelerator, batch: RayBatch, query: str):
     """Answer ``query`` (``"closest"`` or ``"occluded"``) for ``batch``.
+
+    Embree gets the float32 rays, our trees and plug-in accelerators the float64 ones.
 
     Returns
     -------
@@ -241,6 +267,13 @@ def check_answer(scene: Scene, batch: RayBatch, query: str, answer, reference, g
             f"of {counts['rays']} rays (first rays: {first}); counts {counts}"
         )
     return counts
+
+
+def check_unchanged(who: str, arrays) -> None:
+    """Raise if any ``(name, before, after)`` pair differs: ``who`` wrote into inputs every method shares."""
+    changed = [name for name, before, after in arrays if not np.array_equal(before, after, equal_nan=True)]
+    if changed:
+        raise BenchmarkValidationError(f"{who} modified its input {', '.join(changed)} (shared with the other methods)")
 
 
 def oracle_answer(scene: Scene, batch: RayBatch, query: str):
@@ -338,19 +371,22 @@ def measure_build(benchmark, bench: SceneBench, variant: str) -> dict[str, Any]:
 def measure_traversal(benchmark, bench: SceneBench, name: str, kind: str, query: str) -> dict[str, Any]:
     """Time one intersector on one ray kind and query, then validate the timed answer.
 
-    Our trees are checked on every ray against Embree's answer; Embree's answer is
-    checked on a sample against the brute-force oracle and then kept as the
-    reference for our trees.
+    Our trees and plug-in accelerators (``name`` = ``"plugin:SPEC"``) are checked on
+    every ray against Embree's answer; Embree's answer is checked on a sample against
+    the brute-force oracle and then kept as the reference for the others. A plug-in's
+    invalid answer raises :class:`kdtrace.plugins.PluginError` (from the timed call).
 
     Returns
     -------
     dict
         scene, variant, kind, query, rays, seconds, mrays_per_s, the tree's
-        triangles / references / bytes and nodes_per_ray, tests_per_ray (ours), or
-        threads (Embree), and the agreement counts.
+        triangles / references / bytes and nodes_per_ray, tests_per_ray (ours),
+        threads (Embree), or triangles, plugin_stats and plugin_load_seconds
+        (plug-ins), and the agreement counts.
     """
     intersector = bench.intersector(name)
     batch = bench.ray_batch(kind)
+    inputs = (batch.origins64.copy(), batch.directions64.copy(), batch.tmax.copy()) if is_plugin(name) else ()
     answer, seconds = timed_call(benchmark, lambda: run_query(intersector, batch, query), TRAVERSAL_ROUNDS, TRAVERSAL_WARMUP_ROUNDS)
     info = {
         "benchmark": "traversal",
@@ -368,6 +404,12 @@ def measure_traversal(benchmark, bench: SceneBench, name: str, kind: str, query:
         counts = check_answer(bench.scene, sample, query, slice_answer(answer, len(sample)), oracle, bench.geometry)
         bench.record_reference(kind, query, answer)
         info["threads"] = intersector.threads
+    elif is_plugin(name):
+        check_unchanged(f"plug-in {plugin_spec(name)!r}", zip(("origins", "directions", "tmax"), inputs,
+                                                              (batch.origins64, batch.directions64, batch.tmax), strict=True))
+        counts = check_answer(bench.scene, batch, query, answer, bench.reference(kind, query), bench.geometry)
+        info.update(triangles=int(len(bench.scene.triangles)), plugin_stats=jsonable(intersector.stats),
+                    plugin_load_seconds=bench.plugin_load_seconds(plugin_spec(name)))
     else:
         counters = intersector.last_counters.mean()
         counts = check_answer(bench.scene, batch, query, answer, bench.reference(kind, query), bench.geometry)
@@ -390,7 +432,8 @@ class Results:
 
     ``add`` keeps each row together with the benchmark's ``extra_info`` dict, so
     :meth:`finalize` can write the same-run ratios (``kdtrace_over_embree``,
-    ``local_over_naive``) into rows measured before their counterpart.
+    ``local_over_naive``; ``plugin_over_embree`` for plug-in accelerators) into rows
+    measured before their counterpart.
     """
 
     rows: list[dict[str, Any]] = field(default_factory=list)
@@ -405,26 +448,46 @@ class Results:
         return {(r["scene"], r["kind"], r["query"], r["variant"]): r["mrays_per_s"] for r in self.rows if r["benchmark"] == "traversal"}
 
     def finalize(self) -> None:
-        """Fill ``kdtrace_over_embree`` (our variants) and ``local_over_naive`` (local) into every traversal row."""
+        """Fill the same-run ratios into every traversal row.
+
+        ``kdtrace_over_embree`` (our variants), ``local_over_naive`` (local),
+        ``plugin_over_embree`` (plug-ins): Mrays/s over Mrays/s on the same rays.
+        """
         rates = self._rates()
         for row, extra in zip(self.rows, self._extra, strict=True):
             if row["benchmark"] != "traversal" or row["variant"] == "embree":
                 continue
             key = row["scene"], row["kind"], row["query"]
-            ratios = {"kdtrace_over_embree": _ratio(row["mrays_per_s"], rates.get((*key, "embree")))}
+            embree = rates.get((*key, "embree"))
+            if is_plugin(row["variant"]):
+                ratios = {"plugin_over_embree": _ratio(row["mrays_per_s"], embree)}
+                row.update(ratios)
+                extra.update(ratios)
+                continue
+            ratios = {"kdtrace_over_embree": _ratio(row["mrays_per_s"], embree)}
             if row["variant"] == "local":
                 ratios["local_over_naive"] = _ratio(row["mrays_per_s"], rates.get((*key, "naive")))
             row.update(ratios)
             extra.update(ratios)
 
     def summary(self) -> dict[str, dict[str, Any]]:
-        """Per-scene summary: triangles, references and their reduction, tree bytes, build seconds, rates, ratios."""
+        """Per-scene summary: triangles, references and their reduction, tree bytes, build seconds, rates, ratios.
+
+        Plug-in accelerators, when any ran, are in a scene's ``plugins`` table (SPEC ->
+        stats, load seconds, Mrays/s and ``plugin_over_embree`` per ray kind and
+        query), not in the tables of our trees.
+        """
         scenes: dict[str, dict[str, Any]] = {}
         rates = self._rates()
         # Build rows first: their tree statistics and build times win over the traversal rows'.
         for row in sorted(self.rows, key=lambda r: r["benchmark"] != "build"):
             scene = scenes.setdefault(row["scene"], {"triangles": None, **{key: {} for key in SUMMARY_TABLES}})
             variant = row["variant"]
+            if is_plugin(variant):
+                plugin = scene.setdefault("plugins", {}).setdefault(plugin_spec(variant), {})
+                plugin.setdefault("stats", row["plugin_stats"])
+                plugin.setdefault("load_seconds", row["plugin_load_seconds"])
+                continue
             if variant == "embree":
                 continue
             scene["triangles"] = row["triangles"]
@@ -434,6 +497,12 @@ class Results:
                 scene["build_seconds"][variant] = row["build_seconds"]
                 scene["build_peak_memory_bytes"][variant] = row["peak_memory_bytes"]
         for (name, kind, query, variant), rate in rates.items():
+            if is_plugin(variant):
+                plugin = scenes[name]["plugins"][plugin_spec(variant)]
+                plugin.setdefault("mrays_per_s", {}).setdefault(kind, {})[query] = rate
+                plugin.setdefault("plugin_over_embree", {}).setdefault(kind, {})[query] = _ratio(
+                    rate, rates.get((name, kind, query, "embree")))
+                continue
             scenes[name]["mrays_per_s"].setdefault(kind, {}).setdefault(query, {})[variant] = rate
         for scene in scenes.values():
             refs = scene["references"]
@@ -449,9 +518,9 @@ class Results:
         return scenes
 
     def table(self) -> str:
-        """The summary as two GitHub-markdown tables: trees per scene, then rates per scene, ray kind and query."""
+        """The summary as GitHub-markdown tables: trees per scene, rates per scene, ray kind and query, plug-ins' rates (if any)."""
         summary = self.summary()
-        trees, rates = [], []
+        trees, rates, plugins = [], [], []
         for name, scene in summary.items():
             refs, size, build = scene["references"], scene["tree_bytes"], scene["build_seconds"]
             trees.append([name, scene["triangles"], refs.get("naive"), refs.get("local"), refs.get("reduction_pct"),
@@ -461,12 +530,21 @@ class Results:
                     ratio = scene["ratios"][kind][query]
                     rates.append([name, kind, query, rate.get("naive"), rate.get("local"), rate.get("embree"),
                                   ratio["local_over_naive"], ratio["local_over_embree"]])
+            for spec, plugin in scene.get("plugins", {}).items():
+                for kind, queries in plugin.get("mrays_per_s", {}).items():
+                    for query, rate in queries.items():
+                        plugins.append([name, kind, query, spec, rate, scene["mrays_per_s"].get(kind, {}).get(query, {}).get("embree"),
+                                        plugin["plugin_over_embree"][kind][query]])
         style = {"tablefmt": "github", "floatfmt": ".3g", "missingval": "-"}
         tree_table = tabulate(trees, headers=["scene", "triangles", "refs naive", "refs local", "reduction %", "bytes naive",
                                               "bytes local", "build s naive", "build s local"], **style)
         rate_table = tabulate(rates, headers=["scene", "ray kind", "query", "naive Mrays/s", "local Mrays/s",
                                               "embree Mrays/s", "local/naive", "local/embree"], **style)
-        return f"{tree_table}\n\n{rate_table}"
+        if not plugins:
+            return f"{tree_table}\n\n{rate_table}"
+        plugin_table = tabulate(plugins, headers=["scene", "ray kind", "query", "plug-in", "plug-in Mrays/s", "embree Mrays/s",
+                                                  "plug-in/embree"], **style)
+        return f"{tree_table}\n\n{rate_table}\n\n{plugin_table}"
 
 
 # ------------------------------------------------------------------ machine info and output

@@ -20,6 +20,12 @@ afterwards, raising :class:`~bench._measure.BenchmarkValidationError`:
 ``extra_info`` holds the PSNR of each result against the reference (superres: also
 against the held-out 512x512 reference, upsampled from 256x256), and at the end of the
 session the same-run ratio (OIDN/ours, bicubic/ours seconds).
+
+A plug-in denoiser (``--bench-denoiser SPEC``, method ``plugin:SPEC``) is timed on the
+same buffers as OIDN (colour, albedo, normal); its output is validated by
+:class:`kdtrace.plugins.CheckedDenoiser` (a bad one raises ``PluginError``), it must leave
+the shared buffers unchanged, its PSNR is recorded but not gated, and its rows get
+``oidn_over_plugin_seconds``.
 """
 
 from __future__ import annotations
@@ -32,7 +38,9 @@ from typing import Any
 import numpy as np
 import torch
 
-from bench._measure import SEED, BenchmarkValidationError, machine_info, timed_call, write_json_atomic
+from bench._measure import SEED, BenchmarkValidationError, check_unchanged, machine_info, timed_call, write_json_atomic
+from bench._plugins import is_plugin, plugin_name
+from kdtrace.plugins import CheckedDenoiser
 from reconstruction import metrics, speed
 from reconstruction.inference import MAX_PSNR_CHANGE, denoise, make_runner
 from reconstruction.models import superresolve
@@ -141,6 +149,25 @@ def measure_denoise(benchmark, bench: ReconstructionBench, method: str) -> dict[
     return info
 
 
+def measure_plugin_denoise(benchmark, bench: ReconstructionBench, denoiser: CheckedDenoiser) -> dict[str, Any]:
+    """Time a plug-in denoiser on the bench frame (OIDN's inputs: colour, albedo, normal).
+
+    Returns the row of :func:`measure_denoise` with method ``plugin:SPEC``; raises
+    :class:`kdtrace.plugins.PluginError` when the plug-in raises or returns an invalid image.
+    """
+    frame = bench.frame
+    method = plugin_name(denoiser.spec)
+    info: dict[str, Any] = {"group": "denoise", "scene": bench.scene, "method": method, "width": frame.color.shape[1],
+                            "height": frame.color.shape[0], "spp": frame.spp, "threads": torch.get_num_threads(),
+                            "noisy_psnr": metrics.psnr(frame.color, frame.reference)}
+    inputs = {"color": frame.color, "albedo": frame.albedo, "normal": frame.normal}
+    before = {name: image.copy() for name, image in inputs.items()}
+    result, seconds = timed_call(benchmark, lambda: denoiser(frame.color, frame.albedo, frame.normal), ROUNDS, WARMUP_ROUNDS)
+    check_unchanged(f"plug-in {denoiser.spec!r}", ((name, before[name], image) for name, image in inputs.items()))
+    _check_image(result, frame.color.shape, f"{bench.scene} denoise {method}")
+    return info | {"seconds": seconds, "psnr": metrics.psnr(result, frame.reference)}
+
+
 def measure_superres(benchmark, bench: ReconstructionBench, method: str) -> dict[str, Any]:
     """Time one 2x upsampler (``"ours"`` or ``"bicubic"``) on the bench image, then validate it."""
     from reconstruction.baselines import bicubic
@@ -202,24 +229,42 @@ class ReconstructionResults:
         return {group: seconds[group, baseline] / seconds[group, "ours"] for group, baseline in BASELINES.items()
                 if (group, baseline) in seconds and (group, "ours") in seconds}
 
+    def plugin_ratios(self) -> dict[str, dict[str, float]]:
+        """``GROUP`` -> ``plugin:SPEC`` -> baseline seconds / the plug-in's seconds, where both ran."""
+        seconds = {(row["group"], row["method"]): row["seconds"] for row in self.rows}
+        ratios: dict[str, dict[str, float]] = {}
+        for (group, method), plugin_seconds in seconds.items():
+            baseline = BASELINES.get(group)
+            if is_plugin(method) and (group, baseline) in seconds:
+                ratios.setdefault(group, {})[method] = seconds[group, baseline] / plugin_seconds
+        return ratios
+
     def finalize(self) -> None:
-        """Write each group's ratio into every row and extra_info of that group."""
-        ratios = self.ratios()
+        """Write each group's ratio into every row and extra_info of that group, and the plug-ins' into theirs."""
+        ratios, plugin_ratios = self.ratios(), self.plugin_ratios()
         for row, extra in zip(self.rows, self.extras, strict=True):
             if row["group"] in ratios:
                 key = f"{BASELINES[row['group']]}_over_ours_seconds"
                 row[key] = extra[key] = ratios[row["group"]]
+            if row["method"] in plugin_ratios.get(row["group"], {}):
+                key = f"{BASELINES[row['group']]}_over_plugin_seconds"
+                row[key] = extra[key] = plugin_ratios[row["group"]][row["method"]]
 
     def table(self) -> str:
         """One line per timed method: seconds, PSNR and option."""
-        lines = [f"{'group':9s} {'method':8s} {'seconds':>9s} {'PSNR dB':>8s}  option"]
+        width = max([8, *(len(row["method"]) for row in self.rows)])  # plug-ins' names are long
+        lines = [f"{'group':9s} {'method':{width}s} {'seconds':>9s} {'PSNR dB':>8s}  option"]
         for row in self.rows:
-            lines.append(f"{row['group']:9s} {row['method']:8s} {row['seconds']:9.4f} {row['psnr']:8.2f}  "
+            lines.append(f"{row['group']:9s} {row['method']:{width}s} {row['seconds']:9.4f} {row['psnr']:8.2f}  "
                          f"{row.get('option', '')}")
         lines += [f"{group}: {BASELINES[group]}/ours seconds = {ratio:.2f}" for group, ratio in self.ratios().items()]
+        lines += [f"{group}: {BASELINES[group]}/{method} seconds = {ratio:.2f}"
+                  for group, methods in self.plugin_ratios().items() for method, ratio in methods.items()]
         return "\n".join(lines)
 
 
 def write_reconstruction_summary(path: Path, results: ReconstructionResults) -> None:
-    """``path`` (JSON, atomic): rows, ratios and the machine."""
-    write_json_atomic(path, {"rows": results.rows, "ratios": results.ratios(), "machine": machine_info()})
+    """``path`` (JSON, atomic): rows, ratios (and the plug-ins', when any ran) and the machine."""
+    plugin_ratios = results.plugin_ratios()
+    write_json_atomic(path, {"rows": results.rows, "ratios": results.ratios(),
+                             **({"plugin_ratios": plugin_ratios} if plugin_ratios else {}), "machine": machine_info()})

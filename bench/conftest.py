@@ -3,6 +3,7 @@
 Run from the repository root (see ``bench/README.md``)::
 
     .venv/bin/pytest bench --benchmark-enable [--bench-scenes all] [--bench-rays N]
+        [--bench-accelerator SPEC[,SPEC...]] [--bench-denoiser SPEC[,SPEC...]]
 
 ``--bench-scenes`` deselects the scenes not asked for and the remaining tests run
 scene by scene (builds, then Embree, naive, local per ray kind and query), so only
@@ -10,6 +11,10 @@ one scene's trees, Embree BVH and rays are held at a time. At the end of the run
 ratios between intersectors are written into every benchmark's ``extra_info`` (before
 pytest-benchmark saves its JSON), a per-scene table is printed and, when
 benchmarking is enabled, ``bench/results/summary.json`` is written.
+
+``--bench-accelerator`` / ``--bench-denoiser`` add plug-ins (``bench/_plugins.py``)
+to the ``traversal`` and ``denoise`` groups; they are resolved in
+:func:`pytest_configure`, and one that does not load is a usage error.
 """
 
 from __future__ import annotations
@@ -33,6 +38,7 @@ from bench._measure import (
     summary_document,
     write_json_atomic,
 )
+from bench._plugins import PLUGINS_KEY, BenchPlugins, is_plugin
 from kdtrace.kdtree import VARIANTS, build_kdtree
 from kdtrace.procedural import random_soup
 from kdtrace.scenes import list_scenes, load_scene
@@ -47,25 +53,36 @@ def pytest_addoption(parser):
     group.addoption("--bench-scenes", default=",".join(DEFAULT_SCENES),
                     help=f"comma-separated scene names, or 'all' (default: {','.join(DEFAULT_SCENES)})")
     group.addoption("--bench-rays", type=int, default=DEFAULT_RAYS, help=f"rays per ray kind (default: {DEFAULT_RAYS})")
+    group.addoption("--bench-accelerator", action="append", default=[], metavar="SPEC",
+                    help="also time this plug-in accelerator in the traversal group: an entry-point name of "
+                         "kdtrace.accelerators or package.module:factory (repeatable, or comma-separated)")
+    group.addoption("--bench-denoiser", action="append", default=[], metavar="SPEC",
+                    help="also time this plug-in denoiser in the denoise group: an entry-point name of "
+                         "kdtrace.denoisers or package.module:factory (repeatable, or comma-separated)")
 
 
 def pytest_configure(config):
     config.stash[RESULTS_KEY] = Results()
+    # Raises pytest.UsageError naming a plug-in that cannot be imported or loaded.
+    config.stash[PLUGINS_KEY] = BenchPlugins.from_options(config.getoption("bench_accelerator"),
+                                                          config.getoption("bench_denoiser"))
     # pytest-benchmark's --benchmark-json does not create its folder.
     RESULTS_DIRECTORY.mkdir(exist_ok=True)
 
 
-def _order(item, scenes: list[str]) -> tuple:
-    """Sort key: scene, builds before traversals, then ray kind, query and intersector (Embree first)."""
+def _order(item, scenes: list[str], accelerators: list[str]) -> tuple:
+    """Sort key: scene, builds before traversals, then ray kind, query and intersector (Embree first, plug-ins last)."""
     params = item.callspec.params
     traversal = "kind" in params
+    intersector = params.get("intersector", "")
     return (
         scenes.index(params["scene_name"]),
         traversal,
         VARIANTS.index(params["variant"]) if not traversal else 0,
         RAY_KINDS.index(params["kind"]) if traversal else 0,
         QUERIES.index(params["query"]) if traversal else 0,
-        INTERSECTORS.index(params["intersector"]) if traversal else 0,
+        (len(INTERSECTORS) + accelerators.index(intersector) if is_plugin(intersector) else INTERSECTORS.index(intersector))
+        if traversal else 0,
     )
 
 
@@ -78,7 +95,8 @@ def pytest_collection_modifyitems(config, items):
     dropped = [item for item in benches if item.callspec.params["scene_name"] not in scenes]
     if dropped:
         config.hook.pytest_deselected(items=dropped)
-    kept = sorted((item for item in benches if item not in dropped), key=lambda item: _order(item, scenes))
+    accelerators = config.stash[PLUGINS_KEY].accelerator_names
+    kept = sorted((item for item in benches if item not in dropped), key=lambda item: _order(item, scenes, accelerators))
     items[:] = [item for item in items if item not in benches] + kept
 
 

@@ -10,6 +10,11 @@ Each test validates what it timed. At the end of the session the same-run ratios
 (OIDN/ours and bicubic/ours seconds) are written into every benchmark's ``extra_info``,
 a table is printed and, when benchmarking is enabled,
 ``bench/results/reconstruction_summary.json`` is written atomically.
+
+Plug-in denoisers given with ``--bench-denoiser SPEC`` are further methods
+``plugin:SPEC`` of the denoise group, after ours (``bench/_plugins.py``)::
+
+    .venv/bin/pytest bench/test_bench_reconstruction.py --benchmark-enable -k denoise --bench-denoiser bilateral
 """
 
 from __future__ import annotations
@@ -24,9 +29,12 @@ from bench._measure_reconstruction import (
     ReconstructionBench,
     ReconstructionResults,
     measure_denoise,
+    measure_plugin_denoise,
     measure_superres,
     write_reconstruction_summary,
 )
+from bench._plugins import bench_plugins, is_plugin, plugin_spec
+from kdtrace.plugins import PluginError
 
 SUMMARY_PATH = Path(__file__).parent / "results" / "reconstruction_summary.json"
 
@@ -76,10 +84,25 @@ def reconstruction_bench(reconstruction_results) -> ReconstructionBench:
 MEASURES = {"denoise": (measure_denoise, DENOISERS), "superres": (measure_superres, UPSAMPLERS)}
 
 
-@pytest.mark.parametrize(("group", "method"), [(group, method) for group, (_, methods) in MEASURES.items()
-                                               for method in methods])
-def test_reconstruction(benchmark, reconstruction_bench, reconstruction_results, group, method):
+def pytest_generate_tests(metafunc):
+    """Parametrise by (group, method): ours and the baselines, then the plug-in denoisers in the denoise group."""
+    if metafunc.definition.name != "test_reconstruction":
+        return
+    plugins = {"denoise": bench_plugins(metafunc.config).denoiser_names}
+    metafunc.parametrize(("group", "method"), [(group, method) for group, (_, methods) in MEASURES.items()
+                                               for method in (*methods, *plugins.get(group, ()))])
+
+
+def test_reconstruction(benchmark, pytestconfig, reconstruction_bench, reconstruction_results, group, method):
     benchmark.group = group
-    info = MEASURES[group][0](benchmark, reconstruction_bench, method)
+    try:
+        if is_plugin(method):
+            denoiser = bench_plugins(pytestconfig).denoisers[plugin_spec(method)]
+            info = measure_plugin_denoise(benchmark, reconstruction_bench, denoiser)
+        else:
+            info = MEASURES[group][0](benchmark, reconstruction_bench, method)
+    except PluginError as error:
+        # the plug-in's message alone: no traceback, no chained exception
+        raise pytest.fail.Exception(str(error), pytrace=False) from None
     benchmark.extra_info.update(info)
     reconstruction_results.add(info, benchmark.extra_info)
