@@ -230,6 +230,14 @@ class ReconstructionProfile:
         How the low-resolution input is made before bicubic upsampling: ``"area"`` (2x2 box
         mean, what a half-resolution render with a box filter sees) or ``"bicubic"``
         (antialiased bicubic).
+    precision : str
+        Training arithmetic: ``"fp32"``, or ``"bf16"`` (mixed precision: forward and backward
+        under ``torch.autocast("cpu", dtype=torch.bfloat16)``, fp32 master weights and Adam
+        state, the loss in fp32), or ``"auto"`` (bf16 when the CPU has AVX512-BF16 or AMX,
+        else fp32 with a note in the result). Evaluation is always fp32.
+    patience : int
+        Early stopping: training ends after this many epochs without a lower validation loss
+        (0: run all ``epochs``).
     seed : int
         Seed of camera positions, render seeds, crops, splits, initialisation and shuffling.
     """
@@ -255,6 +263,8 @@ class ReconstructionProfile:
     superres_crop_size: int = 256
     superres_crops_per_image: int = 32
     superres_downsample: str = "area"
+    precision: str = "fp32"
+    patience: int = 0
     seed: int = 20261122
 
     def __post_init__(self) -> None:
@@ -269,6 +279,10 @@ class ReconstructionProfile:
             raise ValueError("reconstruction.reference must be 'mitsuba' or 'kdtrace'")
         if self.superres_downsample not in ("area", "bicubic"):
             raise ValueError("reconstruction.superres_downsample must be 'area' or 'bicubic'")
+        if self.precision not in ("fp32", "bf16", "auto"):
+            raise ValueError("reconstruction.precision must be 'fp32', 'bf16' or 'auto'")
+        if self.patience < 0:
+            raise ValueError("reconstruction.patience must be >= 0 (0: no early stopping)")
         if self.superres_crop_size % 2:
             raise ValueError("reconstruction.superres_crop_size must be even (2x downsampling)")
         if not (0.0 <= self.region_fraction and 0.0 <= self.min_coverage <= 1.0 and self.learning_rate > 0.0):

@@ -261,9 +261,36 @@ def evaluate(model: nn.Module, dataset_split: tuple[torch.Tensor, torch.Tensor],
     return metrics
 
 
+def resolve_precision(requested: str) -> tuple[str, str]:
+    """The training arithmetic ``"fp32"`` or ``"bf16"`` for a profile's ``precision``, and a note.
+
+    ``"auto"`` is bf16 when the CPU has AVX512-BF16 or AMX tiles (where bf16 matrix products
+    run in hardware), else fp32; the note says which and why ("" when nothing was decided).
+    """
+    from reconstruction.inference import _bf16_supported
+
+    if requested == "auto":
+        if _bf16_supported():
+            return "bf16", "bf16 mixed precision (the CPU has AVX512-BF16/AMX)"
+        return "fp32", "fp32: the CPU has neither AVX512-BF16 nor AMX, so bf16 autocast would be emulated (slow)"
+    if requested not in ("fp32", "bf16"):
+        raise ValueError(f"precision must be 'fp32', 'bf16' or 'auto', got {requested!r}")
+    return requested, ""
+
+
+def _forward(model: nn.Module, inputs: torch.Tensor, precision: str) -> torch.Tensor:
+    """``model(inputs)``; under bf16 autocast in channels-last layout, returned as fp32 (the loss runs in fp32)."""
+    if precision != "bf16":
+        return model(inputs)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        prediction = model(inputs.contiguous(memory_format=torch.channels_last))
+    return prediction.float().contiguous()
+
+
 def fit(model: nn.Module, loss_fn: nn.Module, data: dict[str, tuple[torch.Tensor, torch.Tensor]], directory: Path,
         data_hash: str, epochs: int, batch_size: int, learning_rate: float, seed: int,
-        to_linear: Transform = _identity, psnr: Callable | None = None, progress: bool | None = None) -> TrainResult:
+        to_linear: Transform = _identity, psnr: Callable | None = None, progress: bool | None = None,
+        precision: str = "fp32", patience: int = 0) -> TrainResult:
     """Train ``model`` with Adam, resuming from ``directory/checkpoint.pt`` when it matches.
 
     Parameters
@@ -288,12 +315,19 @@ def fit(model: nn.Module, loss_fn: nn.Module, data: dict[str, tuple[torch.Tensor
         ``psnr(test, reference)`` on (H, W, C) arrays; default :func:`reconstruction.metrics.psnr`.
     progress : bool, optional
         Show a tqdm bar over epochs (None: only on a terminal).
+    precision : {"fp32", "bf16"}
+        Training arithmetic (see :func:`resolve_precision`); bf16 keeps fp32 master weights and
+        Adam state and computes the loss in fp32. Validation is always fp32.
+    patience : int
+        Stop after this many epochs without a lower validation loss (0: never early).
 
     Returns
     -------
     TrainResult
     """
     psnr = _default_psnr() if psnr is None else psnr
+    if precision not in ("fp32", "bf16"):
+        raise ValueError(f"precision must be 'fp32' or 'bf16' (resolve 'auto' first), got {precision!r}")
     for split in ("train", "validation"):
         if split not in data or len(data[split][0]) == 0:
             raise ValueError(f"the {split} split is empty")
@@ -317,12 +351,16 @@ def fit(model: nn.Module, loss_fn: nn.Module, data: dict[str, tuple[torch.Tensor
     inputs, targets = data["train"]
     bar = tqdm(total=epochs, initial=len(history), unit="epoch", desc=f"train {architecture(model)['architecture']}",
                disable=None if progress is None else not progress, leave=False)
+    if precision == "bf16":
+        model.to(memory_format=torch.channels_last)
     for epoch in range(len(history) + 1, epochs + 1):
+        if patience and epoch - 1 - best["epoch"] >= patience:
+            break  # early stopping (also on resume: the history already shows it)
         started = time.perf_counter()
         model.train()
         loss_sum, psnrs = 0.0, []
         for index in _batches(len(inputs), batch_size, rng.permutation(len(inputs))):
-            prediction = model(inputs[index])
+            prediction = _forward(model, inputs[index], precision)
             loss = loss_fn(prediction, targets[index])
             optimizer.zero_grad()
             loss.backward()
@@ -342,11 +380,13 @@ def fit(model: nn.Module, loss_fn: nn.Module, data: dict[str, tuple[torch.Tensor
                         numpy_rng=json.dumps(rng.bit_generator.state), torch_rng=torch.get_rng_state(),
                         history=json.dumps(history), best=best["state"], best_loss=best["loss"],
                         best_epoch=best["epoch"])
-        _write_history(directory, history, plot=epoch == epochs or epoch % PLOT_EVERY == 0)
+        stopping = patience and epoch - best["epoch"] >= patience
+        _write_history(directory, history, plot=epoch == epochs or epoch % PLOT_EVERY == 0 or bool(stopping))
         bar.update(1)
         bar.set_postfix(train=f"{history[-1]['train_loss']:.4g}", val=f"{validation['loss']:.4g}")
     bar.close()
     model.load_state_dict(best["state"])
+    model.to(memory_format=torch.contiguous_format)
     model.eval()
     return TrainResult(model, history, best["epoch"], directory, data_hash)
 
@@ -360,8 +400,10 @@ def _training_dir(kind: str, model: nn.Module, loss_fn: nn.Module, data_hash: st
                   profile: ReconstructionProfile) -> Path:
     # the loss is part of the identity: the same net and data trained on another loss is another model
     loss = getattr(loss_fn, "config", None) or type(loss_fn).__name__
+    # fp32 runs keep their pre-precision keys (their caches stay valid); bf16 is another model
+    precision = resolve_precision(profile.precision)[0]
     key = content_key(kind, architecture(model), parameter_count(model), loss, data_hash, profile.batch_size,
-                      profile.learning_rate, profile.seed)
+                      profile.learning_rate, profile.seed, *(["bf16"] if precision == "bf16" else []))
     return cache_root() / "models" / f"{kind}-{key[:24]}"
 
 
@@ -468,8 +510,9 @@ def train_denoiser(scene_names: list[str] | tuple[str, ...], profile: str | Reco
 
         loss_fn = EdgeAwareLoss(DENOISER_SIGMA)
     directory = _training_dir("denoiser", model, loss_fn, data_hash, profile) if directory is None else Path(directory)
+    precision = resolve_precision(profile.precision)[0]
     result = fit(model, loss_fn, data, directory, data_hash, profile.epochs, profile.batch_size,
-                 profile.learning_rate, profile.seed, decode, psnr, progress)
+                 profile.learning_rate, profile.seed, decode, psnr, progress, precision, profile.patience)
     _write_result(result, evaluate(result.model, data["test"], loss_fn, decode, psnr), list(scene_names), profile)
     return result
 
@@ -529,8 +572,9 @@ def train_superres(profile: str | ReconstructionProfile = "quick", scene_names: 
 
         loss_fn = EdgeAwareLoss(SUPERRESOLUTION_SIGMA)
     directory = _training_dir("superres", model, loss_fn, data_hash, profile) if directory is None else Path(directory)
+    precision = resolve_precision(profile.precision)[0]
     result = fit(model, loss_fn, data, directory, data_hash, profile.epochs, profile.batch_size,
-                 profile.learning_rate, profile.seed, _identity, psnr, progress)
+                 profile.learning_rate, profile.seed, _identity, psnr, progress, precision, profile.patience)
     if "test" in data:
         metrics = evaluate(result.model, data["test"], loss_fn, _identity, psnr)
         metrics["bicubic"] = evaluate(nn.Identity(), data["test"], loss_fn, _identity, psnr)
@@ -540,7 +584,9 @@ def train_superres(profile: str | ReconstructionProfile = "quick", scene_names: 
 
 def _write_result(result: TrainResult, test: dict[str, Any], scenes: list[str], profile: ReconstructionProfile) -> None:
     """``result.json``: test metrics of the kept weights, best epoch, data hash, settings, provenance."""
-    record = {"scenes": scenes, "test": test, "best_epoch": result.best_epoch, "data_hash": result.data_hash,
+    precision, note = resolve_precision(profile.precision)
+    record = {"scenes": scenes, "test": test, "best_epoch": result.best_epoch, "epochs_run": len(result.history),
+              "precision": precision, "precision_note": note, "data_hash": result.data_hash,
               **architecture(result.model), "parameters": parameter_count(result.model),
               "provenance": stamp(dataclasses.asdict(profile))}
     atomic_write_bytes(result.directory / "result.json", json.dumps(record, indent=1).encode())

@@ -132,3 +132,48 @@ def test_pooled_psnr_is_not_the_mean_of_per_image_psnrs():
     assert metrics["psnr_mean"] == pytest.approx((80.0 + 20.0) / 2)
     with pytest.raises(ValueError):
         evaluate.pooled([], [])
+
+
+#: The quick report's sweep spp (issue 11: never below the input at any of them).
+SWEEP_SPP = DEFAULT_CONFIG.profile("quick").sweep_spp
+
+
+def test_denoiser_blended_with_its_input_is_not_below_the_input_at_any_sweep_spp(trained):
+    """Weights fitted on the validation views; measured on the test views rendered at each sweep spp.
+
+    The raw network (trained at 4 spp) loses to its own input at high spp; the blend of
+    :mod:`reconstruction.blend` must not, and must keep most of the network's gain at 4 spp.
+    """
+    from kdtrace.render import render
+    from kdtrace.scene import Camera
+    from kdtrace.scenes import load_scene
+    from reconstruction.blend import fit_blend_weights, view_seed
+
+    model, dataset, scene = trained["denoiser"].model, trained["dataset"], load_scene(SCENE)
+    weights = fit_blend_weights(model, dataset, scene, SWEEP_SPP, PROFILE.max_depth, PROFILE.seed)
+    records = {view["name"]: view for view in dataset.manifest["views"]}
+    print(f"\n[quick] blend weights ({SCENE}, {weights.views} validation views): "
+          + ", ".join(f"{s} spp {w:.2f}" for s, w in zip(weights.spp, weights.weights, strict=True)))
+    below = {}
+    for spp in SWEEP_SPP:
+        outputs = {"noisy": [], "raw": [], "blend": []}
+        references = []
+        for name in dataset.views("test"):
+            record = records[name]
+            camera = Camera(**{k: tuple(v) if isinstance(v, list) else v for k, v in record["camera"].items()})
+            # the test seed stream differs from the validation fit's (another split, another index)
+            frame = render(scene, spp=spp, max_depth=PROFILE.max_depth, seed=view_seed(PROFILE.seed + 1, record["index"], spp),
+                           width=camera.width, height=camera.height, aux=True, camera=camera)
+            reference = dataset.load_view(name)["reference"]
+            raw = evaluate.denoise_view(model, {"noisy": frame.rgb, "albedo": frame.albedo, "reference": reference})
+            outputs["noisy"].append(frame.rgb)
+            outputs["raw"].append(raw)
+            outputs["blend"].append(weights.apply(frame.rgb, raw, spp))
+            references.append(reference)
+        psnrs = {method: evaluate.pooled(images, references)["psnr"] for method, images in outputs.items()}
+        print(f"  {spp:3d} spp: " + "  ".join(f"{m} {p:6.2f}" for m, p in psnrs.items()))
+        if psnrs["blend"] < psnrs["noisy"]:
+            below[spp] = psnrs
+        if spp == PROFILE.spp:
+            assert psnrs["blend"] >= psnrs["noisy"] + DENOISER_MARGIN_DB, psnrs
+    assert not below, below

@@ -171,3 +171,44 @@ def test_superres_training_on_photos_and_renders(cache):
     record = json.loads((cache / "sr" / "result.json").read_text())
     assert record["architecture"] == "TinyY"
     assert math.isfinite(record["test"]["psnr"]) and math.isfinite(record["test"]["bicubic"]["psnr"])
+
+
+def _synthetic_data(seed: int = 0):
+    """Noisy 6-channel crops whose target is their first three channels without the noise."""
+    generator = torch.Generator().manual_seed(seed)
+    clean = torch.rand(48, 3, 16, 16, generator=generator)
+    noisy = clean + 0.1 * torch.randn(48, 3, 16, 16, generator=generator)
+    inputs = torch.cat([noisy, clean], dim=1)
+    return {"train": (inputs[:32], clean[:32]), "validation": (inputs[32:], clean[32:])}
+
+
+@pytest.mark.skipif(train.resolve_precision("auto")[0] != "bf16", reason="the CPU has no bf16 matrix hardware")
+def test_bf16_mixed_precision_training_learns_and_keeps_fp32_weights(tmp_path):
+    torch.manual_seed(1)
+    result = train.fit(TinyDenoiser(), nn.MSELoss(), _synthetic_data(), tmp_path, "synthetic", epochs=4,
+                       batch_size=8, learning_rate=3e-3, seed=1, psnr=_psnr, progress=False, precision="bf16")
+    assert all(p.dtype == torch.float32 and p.is_contiguous() for p in result.model.parameters())
+    losses = [row["validation_loss"] for row in result.history]
+    assert min(losses[1:]) < losses[0]
+    # the kept weights evaluate in fp32 to the recorded best validation loss (bf16 only in training)
+    best = train.evaluate(result.model, _synthetic_data()["validation"], nn.MSELoss(), psnr=_psnr)["loss"]
+    assert best == pytest.approx(min(losses), rel=1e-5)
+
+
+def test_early_stopping_ends_after_patience_epochs_without_improvement(tmp_path):
+    """A learning rate of 0 never improves on epoch 1: patience 2 stops after epoch 3, also on resume."""
+    data = _synthetic_data()
+    torch.manual_seed(2)
+    result = train.fit(TinyDenoiser(), nn.MSELoss(), data, tmp_path, "synthetic", epochs=10, batch_size=8,
+                       learning_rate=0.0, seed=2, psnr=_psnr, progress=False, patience=2)
+    assert [row["epoch"] for row in result.history] == [1, 2, 3] and result.best_epoch == 1
+    again = train.fit(TinyDenoiser(), nn.MSELoss(), data, tmp_path, "synthetic", epochs=10, batch_size=8,
+                      learning_rate=0.0, seed=2, psnr=_psnr, progress=False, patience=2)
+    assert len(again.history) == 3
+
+
+def test_precision_names_are_checked():
+    with pytest.raises(ValueError, match="precision"):
+        train.resolve_precision("fp16")
+    with pytest.raises(ValueError, match="precision"):
+        dataclasses.replace(PROFILE, precision="half")

@@ -184,6 +184,11 @@ def test_generate_end_to_end_and_reuse(shared_scenes, isolated_cache, tmp_path, 
     csv = pd.read_csv(out / "error_time.csv")
     assert len(csv) == len(METHODS) * 2 and set(csv["method"]) == set(METHODS)
     assert (csv["seconds"] >= csv["render_seconds"]).all() and np.isfinite(csv["psnr"]).all()
+    blended = csv[csv["method"] == "kdtrace+denoiser-blend"]
+    assert blended["weight"].between(0, 1).all() and np.isfinite(blended["input_psnr"]).all()
+    assert names["error_time/cbox-original/blended_denoiser_not_below_input"].kind == "pass"
+    mitsuba_denoised = csv[csv["method"].isin(["mitsuba+denoiser", "mitsuba+oidn"])]
+    assert (mitsuba_denoised["reconstruction_seconds"] > 0).all() and np.isfinite(mitsuba_denoised["input_psnr"]).all()
     half = csv[csv["method"] == "kdtrace-half+denoiser+superres"]
     assert (half["paths"] == 16 * 16 * half["spp"]).all() and (half["reconstruction_seconds"] > 0).all()
     markdown = (out / "error_time.md").read_text()

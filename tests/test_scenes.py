@@ -23,6 +23,7 @@ EXPECTED_TRIANGLES = {
     "dabrovic-sponza": 66454,
     "samurai-monastery": 124789,
     "crytek-sponza": 262267,
+    "pine": 12 + 2 + 69451,
 }
 
 
@@ -54,6 +55,20 @@ def test_car_dragon_stands_on_the_floor_inside_the_box(shared_scenes):
     box = scene.vertices[scene.triangles[np.setdiff1d(np.arange(len(scene.triangles)), dragon)]].reshape(-1, 3)
     assert corners[:, 1].min() == pytest.approx(0.0, abs=1e-3)
     assert np.all(corners.min(0) > box.min(0)) and np.all(corners.max(0) < box.max(0))
+
+
+def test_pine_is_the_bunny_in_a_recoloured_box_with_two_stronger_lights(shared_scenes):
+    """Table 3's near unseen scene (the paper's Pine): other object, wall colours and lights than the car's box."""
+    pine, car = quiet_load("pine"), quiet_load("car")
+    colours = {m.name: m.albedo for m in pine.materials}
+    assert colours["leftWall"] != {m.name: m.albedo for m in car.materials}["leftWall"]
+    assert pine.bounds[0][1] == pytest.approx(0.0, abs=1e-3)  # the bunny stands on the floor
+
+    def power(scene):
+        emitting = [m for m in scene.materials if max(m.emission) > 0]
+        return len(emitting), max(max(m.emission) for m in emitting)
+    (lights, strongest), (car_lights, car_strongest) = power(pine), power(car)
+    assert lights == car_lights + 1 and strongest > car_strongest
 
 
 def test_cbox_sphere_materials(shared_scenes):
