@@ -106,7 +106,11 @@ class ProfileConfig:
     reconstruction_scenes : tuple of str
         Scenes with a per-scene denoiser (Tables 2, 3, 5, 6); the mixed model trains on all of them.
     unseen_scene : str
-        A scene the mixed model never sees in training (the paper's "Pine", Table 3).
+        A scene the mixed model never sees in training (the paper's "Pine", Table 3): near
+        the training scenes (another object in a training scene's box).
+    far_unseen_scene : str
+        A second never-seen scene far from the training scenes ("" for none), so Table 3
+        shows how the mixed model degrades from near to far.
     sweep_spp : tuple of int
         Samples per pixel of the run-time-against-error sweep (our path tracer and Mitsuba).
     sweep_width, sweep_height : int
@@ -129,6 +133,7 @@ class ProfileConfig:
     reconstruction_profile: str = "quick"
     reconstruction_scenes: tuple[str, ...] = ()
     unseen_scene: str = ""
+    far_unseen_scene: str = ""
     sweep_spp: tuple[int, ...] = (1, 2, 4, 8, 16, 32)
     sweep_width: int = 128
     sweep_height: int = 128
@@ -146,6 +151,9 @@ class ProfileConfig:
             raise ValueError("profile ray counts, spp and frame sizes must be positive")
         if self.combined_width % 2 or self.combined_height % 2 or min(self.combined_width, self.combined_height) < 2:
             raise ValueError("profile combined_width/height must be positive and even (2x superresolution)")
+        if self.far_unseen_scene and self.far_unseen_scene in (*self.reconstruction_scenes, self.unseen_scene):
+            raise ValueError(f"profile far_unseen_scene {self.far_unseen_scene!r} must not be a reconstruction "
+                             "scene or the unseen_scene")
         if self.unseen_scene and self.unseen_scene in self.reconstruction_scenes:
             raise ValueError(f"profile unseen_scene {self.unseen_scene!r} must not be one of reconstruction_scenes")
 
@@ -230,6 +238,11 @@ class ReconstructionProfile:
         How the low-resolution input is made before bicubic upsampling: ``"area"`` (2x2 box
         mean, what a half-resolution render with a box filter sees) or ``"bicubic"``
         (antialiased bicubic).
+    superres_augment : bool
+        Augment the training photographs: each gives ``8 x superres_crops_per_image`` crops,
+        each under a random one of the 8 flips / 90-degree rotations and a random exposure
+        (linear scale in [0.5, 1.5]), so the few bundled photos are not outnumbered by the
+        renders. Validation and test data are never augmented.
     precision : str
         Training arithmetic: ``"fp32"``, or ``"bf16"`` (mixed precision: forward and backward
         under ``torch.autocast("cpu", dtype=torch.bfloat16)``, fp32 master weights and Adam
@@ -238,6 +251,8 @@ class ReconstructionProfile:
     patience : int
         Early stopping: training ends after this many epochs without a lower validation loss
         (0: run all ``epochs``).
+    mixed_epochs : int
+        Epochs of the mixed model, whose epoch holds every scene's crops (0: ``epochs``).
     seed : int
         Seed of camera positions, render seeds, crops, splits, initialisation and shuffling.
     """
@@ -263,9 +278,16 @@ class ReconstructionProfile:
     superres_crop_size: int = 256
     superres_crops_per_image: int = 32
     superres_downsample: str = "area"
+    superres_augment: bool = False
     precision: str = "fp32"
     patience: int = 0
+    mixed_epochs: int = 0
     seed: int = 20261122
+
+    @property
+    def mixed(self) -> ReconstructionProfile:
+        """This profile with the mixed model's epoch count."""
+        return dataclasses.replace(self, epochs=self.mixed_epochs or self.epochs)
 
     def __post_init__(self) -> None:
         counts = (self.positions, self.views_per_position, self.width, self.height, self.spp, self.reference_spp,
@@ -281,6 +303,8 @@ class ReconstructionProfile:
             raise ValueError("reconstruction.superres_downsample must be 'area' or 'bicubic'")
         if self.precision not in ("fp32", "bf16", "auto"):
             raise ValueError("reconstruction.precision must be 'fp32', 'bf16' or 'auto'")
+        if self.mixed_epochs < 0:
+            raise ValueError("reconstruction.mixed_epochs must be >= 0 (0: the same as epochs)")
         if self.patience < 0:
             raise ValueError("reconstruction.patience must be >= 0 (0: no early stopping)")
         if self.superres_crop_size % 2:

@@ -46,10 +46,12 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import errno
 import json
 import math
 import os
 import re
+import shutil
 import tempfile
 import time
 import warnings
@@ -397,6 +399,27 @@ def check_writable(root: Path) -> None:
                                 "the dataset was left as it was") from error
 
 
+def view_bytes(profile: ReconstructionProfile) -> int:
+    """Upper bound of the bytes of one stored view: every buffer of :data:`BUFFERS` as uncompressed float32."""
+    return profile.width * profile.height * sum(BUFFERS.values()) * 4
+
+
+def check_disk_space(root: Path, views_to_render: int, profile: ReconstructionProfile) -> None:
+    """Refuse, before anything is rendered, a dataset whose views would not fit on ``root``'s disk.
+
+    Raises
+    ------
+    DatasetWriteError
+        ``ENOSPC``, naming the space needed (with a 10% margin) and the space free.
+    """
+    needed = int(1.1 * views_to_render * view_bytes(profile))
+    free = shutil.disk_usage(root).free
+    if needed > free:
+        raise DatasetWriteError(errno.ENOSPC, f"the dataset in {root} needs up to {needed / 1e9:.2f} GB for "
+                                f"{views_to_render} more views of {profile.width}x{profile.height}, but only "
+                                f"{free / 1e9:.2f} GB are free; nothing was rendered")
+
+
 def remove_stale_temporaries(root: Path, older_than: float) -> list[str]:
     """Delete temporary files of atomic writes (``.view-*``, ``.manifest.*``) older than ``older_than`` seconds.
 
@@ -506,6 +529,7 @@ def generate_dataset(scene: str | Scene, profile: str | ReconstructionProfile = 
     settings = config or DEFAULT_CONFIG.distributed
     variant = variant or settings.mitsuba_variant or None
     views = candidate_views(scene, profile)
+    check_disk_space(root, len(views) - len(list(root.glob("view-*.npz"))), profile)
     distributed = client is not None or workers is not None or bool(scheduler or os.environ.get("KDTRACE_SCHEDULER"))
     if distributed:
         records = _render_distributed(scene, profile, views, root, key, variant,
@@ -665,6 +689,20 @@ def _image_crops(image: np.ndarray, size: int, count: int, rng: np.random.Genera
             for top, left in _crop_corners(image.shape[:2], size, count, rng)]
 
 
+#: Photo crops per training photo and requested crop when ``superres_augment`` is on (one per flip/rotation).
+AUGMENT_FACTOR = 8
+#: Range of the random exposure (linear scale) of augmented photo crops.
+AUGMENT_EXPOSURE = (0.5, 1.5)
+
+
+def augment(crop: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """One random flip / 90-degree rotation (of 8) and exposure of a (C, S, S) crop, clipped to [0, 1]."""
+    turned = np.rot90(crop, k=int(rng.integers(4)), axes=(1, 2))
+    if rng.integers(2):
+        turned = turned[:, :, ::-1]
+    return np.clip(turned * rng.uniform(*AUGMENT_EXPOSURE), 0.0, 1.0)
+
+
 def superres_data(profile: str | ReconstructionProfile = "quick",
                   datasets: list[Dataset] | tuple[Dataset, ...] = ()) -> dict[str, dict[str, np.ndarray]]:
     """Superresolution pairs: photo and render crops, per split.
@@ -672,7 +710,8 @@ def superres_data(profile: str | ReconstructionProfile = "quick",
     Parameters
     ----------
     profile : str or ReconstructionProfile
-        Supplies ``superres_crop_size``, ``superres_crops_per_image``, ``superres_downsample``, ``seed``.
+        Supplies ``superres_crop_size``, ``superres_crops_per_image``, ``superres_downsample``,
+        ``superres_augment`` (training photos only: see :func:`augment`) and ``seed``.
     datasets : sequence of Dataset
         Precision Graphics datasets whose references add render crops (train views to
         train, validation views to validation, test views to test).
@@ -691,10 +730,16 @@ def superres_data(profile: str | ReconstructionProfile = "quick",
     profile = _resolve(profile)
     size, count = profile.superres_crop_size, profile.superres_crops_per_image
     rng = np.random.default_rng([profile.seed, 5])
+    augment_rng = np.random.default_rng([profile.seed, 6])
     targets: dict[str, list[np.ndarray]] = {split: [] for split in SPLITS}
     for split, names in (("train", TRAIN_PHOTOS), ("validation", VALIDATION_PHOTOS)):
         for name in names:
-            targets[split] += _image_crops(photo(name), size, count, rng)
+            image_crops = _image_crops(photo(name), size, count, rng)
+            if split == "train" and profile.superres_augment:
+                # a stream of its own, so that every other crop is the same with and without augmentation
+                extra = _image_crops(photo(name), size, count * (AUGMENT_FACTOR - 1), augment_rng)
+                image_crops = [augment(c, augment_rng) for c in image_crops + extra]
+            targets[split] += image_crops
     for dataset in datasets:
         for split in SPLITS:
             for name in dataset.views(split):

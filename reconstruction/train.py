@@ -554,14 +554,15 @@ def train_superres(profile: str | ReconstructionProfile = "quick", scene_names: 
         ``result.json`` holds the test metrics (renders) when scenes are given, and
         those of the bicubic input for comparison.
     """
-    from reconstruction.data import generate_dataset, superres_data
+    from reconstruction.data import AUGMENT_EXPOSURE, AUGMENT_FACTOR, generate_dataset, superres_data
 
     profile = _resolve(profile)
     datasets = [generate_dataset(name, profile, progress) for name in scene_names]
     pairs = superres_data(profile, datasets)
     data = {split: superres_tensors(value) for split, value in pairs.items()}
     data_hash = content_key("superres-data", [d.key for d in datasets], profile.superres_crop_size,
-                            profile.superres_crops_per_image, profile.superres_downsample, profile.seed)
+                            profile.superres_crops_per_image, profile.superres_downsample, profile.seed,
+                            *(["augmented", AUGMENT_FACTOR, AUGMENT_EXPOSURE] if profile.superres_augment else []))
     if model is None:
         from reconstruction.models import Superresolution
 

@@ -45,6 +45,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pandas as pd
 import torch
 from tabulate import tabulate
@@ -89,8 +90,30 @@ def _model_made(result) -> float:
 
 
 # ------------------------------------------------------------------ measurement
-def _measure(config: Config, profile_name: str, fresh: bool, progress: bool) -> dict[str, Any]:
-    """Train or reuse everything and measure every number of the tables."""
+def reference_noise(dataset, split: str, spp: int, reference_spp: int) -> dict[str, float]:
+    """Each view's reference noise, as a PSNR, estimated from the noisy input's error.
+
+    Noisy input and reference are independent estimates of the same image whose variance
+    falls as 1/spp (the same integrator; our path tracer passes per-pixel Z-tests against
+    Mitsuba), so ``MSE(noisy, reference) = v/spp + v/reference_spp`` and the reference's own
+    squared error is that MSE times ``spp / (spp + reference_spp)``; clipped to [0, 1] as
+    every PSNR here. Returns the lowest and the median over the ``split`` views, dB.
+    """
+    share = spp / (spp + reference_spp)
+    values = []
+    for name in dataset.views(split):
+        view = dataset.load_view(name)
+        error = float(np.mean((np.clip(view["noisy"], 0, 1) - np.clip(view["reference"], 0, 1)) ** 2)) * share
+        values.append(math.inf if error == 0 else -10.0 * math.log10(error))
+    return {"lowest_psnr": float(min(values)), "median_psnr": float(np.median(values)), "views": len(values)}
+
+
+def _measure(config: Config, profile_name: str, fresh: bool, progress: bool) -> tuple[dict[str, Any], dict[str, Any]]:
+    """Train or reuse everything and measure every number of the tables.
+
+    Returns the measurements (JSON-ready) and the objects the figures are drawn from
+    (datasets, per-scene models, mixed model, superresolution model).
+    """
     from reconstruction import evaluate, speed
     from reconstruction.data import TRAIN_PHOTOS, VALIDATION_PHOTOS, generate_dataset, photo
     from reconstruction.train import parameter_count, train_denoiser, train_superres
@@ -101,16 +124,17 @@ def _measure(config: Config, profile_name: str, fresh: bool, progress: bool) -> 
     if not scenes:
         raise ValueError(f"profile {profile_name!r} names no reconstruction_scenes")
     unseen = profile.unseen_scene
+    far = profile.far_unseen_scene
     started = time.time() - 1.0  # file times have coarse resolution on some systems
     stages: list[Stage] = []
-    steps = len(scenes) + bool(unseen) + len(scenes) + 2 + 2 * len(scenes) + 1
+    steps = len(scenes) + bool(unseen) + bool(far) + len(scenes) + 2 + 2 * len(scenes) + 1
     bar = tqdm(total=steps, unit="step", desc=f"reconstruction ({profile_name})", disable=not progress)
 
     def step(label: str) -> None:
         bar.set_postfix_str(label)
 
     datasets = {}
-    for name in scenes + ([unseen] if unseen else []):
+    for name in scenes + [n for n in (unseen, far) if n]:
         step(f"dataset {name}")
         datasets[name] = _run_stage(stages, f"dataset {name}", started,
                                     lambda name=name: generate_dataset(name, recon, progress=False), _dataset_made)
@@ -122,7 +146,7 @@ def _measure(config: Config, profile_name: str, fresh: bool, progress: bool) -> 
                                   lambda name=name: train_denoiser([name], recon, progress=False), _model_made)
         bar.update()
     step("mixed denoiser")
-    mixed = _run_stage(stages, "mixed denoiser", started, lambda: train_denoiser(scenes, recon, progress=False),
+    mixed = _run_stage(stages, "mixed denoiser", started, lambda: train_denoiser(scenes, recon.mixed, progress=False),
                        _model_made)
     bar.update()
     step("superresolution")
@@ -141,13 +165,16 @@ def _measure(config: Config, profile_name: str, fresh: bool, progress: bool) -> 
             "mixed": {split: evaluate.denoiser_quality(mixed.model, dataset, split, with_oidn=False)["ours"]
                       for split in ("train", "validation", "test")},
             "superres": evaluate.superres_quality(superres.model, dataset, "test", recon.superres_downsample),
+            "reference_noise": reference_noise(dataset, "test", recon.spp, recon.reference_spp),
         }
         bar.update()
-    unseen_quality = None
-    if unseen:
-        step(f"unseen {unseen}")
-        unseen_quality = {"views": len(datasets[unseen].views()),
-                          **evaluate.denoiser_quality(mixed.model, datasets[unseen], None, with_oidn=True)}
+    unseen_quality = {}
+    for role, name in (("unseen", unseen), ("far", far)):
+        if name:
+            step(f"unseen {name}")
+            unseen_quality[role] = {"scene": name, "views": len(datasets[name].views()),
+                                    **evaluate.denoiser_quality(mixed.model, datasets[name], None, with_oidn=True)}
+            bar.update()
     step("photos")
     photos = {
         "train": evaluate.superres_images(superres.model, [photo(n) for n in TRAIN_PHOTOS], recon.superres_downsample),
@@ -185,8 +212,12 @@ def _measure(config: Config, profile_name: str, fresh: bool, progress: bool) -> 
                         "superres": superres.best_epoch},
         "epochs": recon.epochs,
         "parameters": {"denoiser": parameter_count(mixed.model), "superres": parameter_count(superres.model)},
-        "quality": quality, "unseen_quality": unseen_quality, "photos": photos, "timing": timing,
-    }
+        "quality": quality, "unseen_quality": unseen_quality.get("unseen"), "photos": photos, "timing": timing,
+        "far": far, "far_quality": unseen_quality.get("far"),
+        "histories": {**{name: models[name].history for name in scenes}, "mixed": mixed.history,
+                      "superres": superres.history},
+    }, {"datasets": datasets, "models": {name: models[name].model for name in scenes}, "mixed": mixed.model,
+        "superres": superres.model}
 
 
 # ------------------------------------------------------------------ tables
@@ -211,9 +242,18 @@ def _table2(m: dict) -> list[dict]:
         for model in ("ours", "mixed"):
             metrics = {split: (q[model][split]["ours"] if model == "ours" else q[model][split])
                        for split in ("train", "validation", "test")}
+            test = q["ours"]["test"]
+            oidn = test.get("oidn", {}).get("psnr")
+            noise = q.get("reference_noise", {})
+            best = max(p for p in (metrics["test"]["psnr"], oidn, test["noisy"]["psnr"]) if p is not None)
             rows.append({"scene": name, "model": "per-scene" if model == "ours" else "mixed",
                          "train_psnr": metrics["train"]["psnr"], "validation_psnr": metrics["validation"]["psnr"],
                          "test_psnr": metrics["test"]["psnr"], "test_rmse": metrics["test"]["rmse"],
+                         "noisy_test_psnr": test["noisy"]["psnr"],
+                         "gain_over_noisy": metrics["test"]["psnr"] - test["noisy"]["psnr"],
+                         "oidn_test_psnr": oidn, "minus_oidn": None if oidn is None else metrics["test"]["psnr"] - oidn,
+                         "reference_psnr_lowest": noise.get("lowest_psnr"),
+                         "reference_margin_db": None if not noise else noise["lowest_psnr"] - best,
                          "test_views": q["views"]["test"],
                          "paper_test_psnr": paper.get("test_psnr") if model == "ours" else None,
                          "paper_test_rmse": paper.get("test_rmse") if model == "ours" else None,
@@ -251,6 +291,13 @@ def _table3(m: dict) -> list[dict]:
                      "psnr_difference": None, "noisy_psnr": u["noisy"]["psnr"],
                      "oidn_psnr": u.get("oidn", {}).get("psnr"),
                      "paper_mixed_psnr": paper["test_psnr"], "paper_mixed_rmse": paper["test_rmse"],
+                     "paper_psnr_difference": None})
+    if m.get("far_quality"):
+        u = m["far_quality"]
+        rows.append({"scene": f"{m['far']} (never seen, far)", "views": f"all ({u['views']})",
+                     "mixed_psnr": u["ours"]["psnr"], "mixed_rmse": u["ours"]["rmse"], "per_scene_psnr": None,
+                     "psnr_difference": None, "noisy_psnr": u["noisy"]["psnr"],
+                     "oidn_psnr": u.get("oidn", {}).get("psnr"), "paper_mixed_psnr": None, "paper_mixed_rmse": None,
                      "paper_psnr_difference": None})
     return rows
 
@@ -388,6 +435,38 @@ def write_outputs(m: dict, config: Config, out_dir: Path) -> dict[str, pd.DataFr
     return frames
 
 
+def write_figures(m: dict, objects: dict[str, Any], config: Config, out_dir: Path) -> list[Path]:
+    """The paper's Figures 4, 5-6 and 7 as PNGs in ``out_dir/figures`` and their index ``figures.md``.
+
+    Figure 4: every model's training curves. Per reconstruction scene, one test view
+    (:func:`reports.figures.scene_figures`: the first in name order): noisy / per-scene /
+    mixed / OIDN / reference, and bicubic / ours / reference superresolution; per
+    never-seen scene, noisy / mixed / OIDN / reference on its first view.
+    """
+    from reports.figures import markdown_links, scene_figures, training_curves
+
+    recon = config.reconstruction.profile(m["reconstruction_profile"])
+    paths = {"training": training_curves(m["histories"], out_dir / "figures" / "training.png")}
+    for name in m["scenes"]:
+        paths.update(scene_figures(name, objects["datasets"][name], {"ours": objects["models"][name],
+                                                                     "mixed": objects["mixed"]},
+                                   objects["superres"], out_dir, downsample=recon.superres_downsample))
+    for role in ("unseen", "far"):
+        name = m["unseen"] if role == "unseen" else m.get("far")
+        if name:
+            dataset = objects["datasets"][name]
+            found = scene_figures(name, dataset, {"mixed": objects["mixed"]}, objects["superres"], out_dir,
+                                  view=dataset.views()[0], downsample=recon.superres_downsample)
+            paths.update({key: path for key, path in found.items() if "denoising" in key})
+    text = (f"# Figures ({m['profile']} profile)\n\nThe paper's Figure 4 (training curves: solid train, dashed "
+            "validation, a dot at each kept epoch) and, per scene, Figures 5-7 on one test view (the first in name "
+            "order, not the best-looking one; never-seen scenes: their first view) with each panel's PSNR under it "
+            "and an enlarged crop (the window with the most detail in the reference). Display: linear values "
+            "clipped to [0, 1], sRGB curve.\n\n" + markdown_links(paths, out_dir) + "\n")
+    atomic_write_bytes(out_dir / "figures.md", text.encode())
+    return list(paths.values())
+
+
 def metrics_of(m: dict) -> list[Metric]:
     """The gated metrics of one run (see :mod:`reports.metrics`)."""
     out = [Metric("table2/denoiser/parameters", "count", m["parameters"]["denoiser"], "trainable parameters"),
@@ -408,6 +487,9 @@ def metrics_of(m: dict) -> list[Metric]:
     if m["unseen_quality"]:
         out.append(Metric(f"table3/{m['unseen']}/mixed_psnr", "psnr", m["unseen_quality"]["ours"]["psnr"],
                           "mixed denoiser on the never-seen scene, all views, dB"))
+    if m.get("far_quality"):
+        out.append(Metric(f"table3/{m['far']}/mixed_psnr", "psnr", m["far_quality"]["ours"]["psnr"],
+                          "mixed denoiser on the far never-seen scene, all views, dB"))
     out.append(Metric("table5/photos/ours_test_psnr", "psnr", m["photos"]["test"]["ours"]["psnr"],
                       "superresolution 2x, held-out photos, dB"))
     return out
@@ -446,12 +528,13 @@ def generate(config: Config, profile_name: str, out_dir: str | Path, fresh: bool
         warnings.warn(f"reconstruction tables skipped: profile {profile_name!r} has no reconstruction scenes "
                       "(left out by --scenes?)", ReportNote, stacklevel=2)
         return []
-    measurements = _measure(config, profile_name, fresh, progress)
+    measurements, objects = _measure(config, profile_name, fresh, progress)
     reused = [stage["name"] for stage in measurements["stages"] if stage["reused"]]
     if reused:
         warnings.warn(f"reconstruction: reused {len(reused)} of {len(measurements['stages'])} datasets and models "
                       "from the cache", ReportNote, stacklevel=2)
     write_outputs(measurements, config, out_dir)
+    write_figures(measurements, objects, config, out_dir)
     metrics = metrics_of(measurements)
     write_metrics(out_dir, "reconstruction", metrics)
     return metrics

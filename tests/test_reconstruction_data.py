@@ -224,3 +224,33 @@ def test_an_unusable_mitsuba_variant_falls_back_with_a_warning():
     # no GPU variant is supported by references.mitsuba yet, and this machine has no GPU either way
     with pytest.warns(UserWarning, match="cuda_ad_rgb"):
         assert data.reference_variant("cuda_ad_rgb") is None
+
+
+def test_augmented_superres_photos_are_flipped_rotated_and_exposed_training_crops_only():
+    augmented = dataclasses.replace(QUICK, superres_augment=True)
+    plain, more = data.superres_data(QUICK), data.superres_data(augmented)
+    assert len(more["train"]["target"]) == data.AUGMENT_FACTOR * len(plain["train"]["target"])
+    np.testing.assert_array_equal(more["validation"]["target"], plain["validation"]["target"])
+    assert 0.0 <= more["train"]["target"].min() and more["train"]["target"].max() <= 1.0
+    rng = np.random.default_rng(0)
+    crop = np.random.default_rng(1).uniform(0.2, 0.4, (3, 8, 8))
+    outputs = [data.augment(crop, rng) for _ in range(64)]
+    # every output is one of the 8 symmetries of the crop times one exposure
+    for output in outputs:
+        scale = output.mean() / crop.mean()
+        assert data.AUGMENT_EXPOSURE[0] <= scale <= data.AUGMENT_EXPOSURE[1]
+        symmetries = [np.rot90(c, k, axes=(1, 2)) for c in (crop, crop[:, :, ::-1]) for k in range(4)]
+        assert min(np.abs(output / scale - s).max() for s in symmetries) < 1e-9
+    assert len({np.round(o / (o.mean() / crop.mean()), 9).tobytes() for o in outputs}) == 8
+
+
+def test_a_dataset_too_large_for_the_disk_is_refused_before_rendering(tmp_path, monkeypatch):
+    monkeypatch.setenv("KDTRACE_CACHE", str(tmp_path))
+    big = dataclasses.replace(QUICK, width=4096, height=4096)
+    free = 10 * data.view_bytes(big)  # room for 10 views, the profile has 16 candidates
+    monkeypatch.setattr(data.shutil, "disk_usage", lambda path: type("Usage", (), {"free": free})())
+    with pytest.raises(data.DatasetWriteError, match=r"needs up to .* GB for 16 more views of 4096x4096"):
+        data.generate_dataset(SCENE, big, progress=False)
+    from kdtrace.scenes import load_scene
+
+    assert not list(data.dataset_dir(load_scene(SCENE), big).glob("view-*"))  # nothing was rendered

@@ -143,6 +143,9 @@ def test_generate_end_to_end_and_reuse(tmp_path, monkeypatch, shared_scenes):
     metrics = rt.generate(config, "tiny", tmp_path / "out", progress=False)
     first = time.perf_counter() - started
     assert "made in this run: dataset cbox-original" in (tmp_path / "out" / "table2.md").read_text()
+    figures = (tmp_path / "out" / "figures.md").read_text()
+    for stem in ("training", "cbox-original-denoising", "cbox-original-superres"):
+        assert f"figures/{stem}.png" in figures and (tmp_path / "out" / "figures" / f"{stem}.png").is_file()
     started = time.perf_counter()
     again = rt.generate(config, "tiny", tmp_path / "out", progress=False)
     second = time.perf_counter() - started
