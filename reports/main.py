@@ -13,7 +13,9 @@ How to use::
 The parts (:data:`PARTS`) run in order; each is a module with
 ``generate(config, profile_name, out_dir, fresh=False, progress=True) -> list[Metric]``
 that writes its own tables and plots into ``out_dir`` and its gated metrics to
-``out_dir/metrics/PART.json``. Modules are imported by dotted name only when the run
+``out_dir/metrics/PART.json``; a part whose ``generate`` also takes ``accelerators`` or
+``denoisers`` gets the plug-ins named by ``--accelerator`` / ``--denoiser``
+(:mod:`reports.plugins`). Modules are imported by dotted name only when the run
 starts, and all of them are looked up before any work, so a missing one is a clear
 error at once. ``--scenes`` restricts the profile's ``scenes`` (and its
 ``reconstruction_scenes`` to those among them) for every part.
