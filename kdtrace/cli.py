@@ -145,7 +145,10 @@ def _report(args, config) -> int:
 
         os.environ[SCHEDULER_ENV] = args.scheduler
     started = time.perf_counter()
-    outcome = run_report(config, args.profile, out_dir, scenes=scenes, fresh=args.fresh, gate=args.gate, parts=parts)
+    from reports.plugins import parse_specs
+
+    outcome = run_report(config, args.profile, out_dir, scenes=scenes, fresh=args.fresh, gate=args.gate, parts=parts,
+                         accelerators=parse_specs(args.accelerator), denoisers=parse_specs(args.denoiser))
     print(f"\nwrote {out_dir}/README.md (index of every table and plot) and provenance.json; "
           f"{time.perf_counter() - started:.0f} s in all")
     for failure in outcome.correctness_failures:
@@ -258,6 +261,12 @@ def build_parser() -> argparse.ArgumentParser:
     report.add_argument("--gate", action="store_true", help="then compare with reports/baseline/PROFILE.json; exit 1 on a regression")
     report.add_argument("--scheduler", help="address of a running Dask scheduler: Table 1 rows and dataset views "
                         "become units of work on its workers (default $KDTRACE_SCHEDULER, else all in this process)")
+    report.add_argument("--accelerator", action="append", metavar="NAME",
+                        help="also put this plug-in accelerator through Table 1 and the agreement part: a registered "
+                             "name (kdtrace.accelerators) or package.module:factory; repeatable or comma-separated")
+    report.add_argument("--denoiser", action="append", metavar="NAME",
+                        help="also put this plug-in denoiser through Tables 2 and 6 and the error-time sweep: a "
+                             "registered name (kdtrace.denoisers) or package.module:factory; repeatable or comma-separated")
     report.set_defaults(run=_report)
 
     for command, run, what in (("gate", _gate, "compare the latest run's metrics with the committed baseline"),

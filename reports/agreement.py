@@ -20,6 +20,10 @@ report says so in a note (and the fallback warning reaches the report's index). 
 Mitsuba is not installed the Z-test is skipped with a note, and its ``pass`` metrics are
 absent, which the gate reports as missing.
 
+Plug-in accelerators (``--accelerator SPEC``) get the same classes from their Table 1
+rows (:func:`reports.table1.load_plugin_rows`) in a section of their own and
+``agreement_plugins.csv``, with ``agreement/SCENE/plugin:SPEC/...`` metrics.
+
 Writes ``agreement.md``, ``agreement.csv`` and ``metrics/agreement.json``: per scene
 ``agreement/SCENE/unexplained_embree`` (``zero``) and, for Z-tested scenes,
 ``agreement/SCENE/mitsuba_ztest`` (``pass``).
@@ -40,7 +44,7 @@ from kdtrace.config import Config
 from references.agreement import EXPLANATIONS, OURS_EXACT, TIE, UNEXPLAINED, WRONG
 from reports.metrics import Metric, write_metrics
 from reports.notes import ReportNote
-from reports.table1 import load_rows
+from reports.table1 import load_plugin_rows, load_rows
 
 #: Z-test settings: our spp, Mitsuba's spp, square frame side, path length (Mitsuba's convention).
 ZTEST_SPP, ZTEST_REF_SPP, ZTEST_SIZE, ZTEST_MAX_DEPTH = 256, 256, 32, 3
@@ -59,6 +63,38 @@ def embree_by_class(rows: list[dict]) -> pd.DataFrame:
                         "agree": int(counts["agree"].sum()),
                         **{(TIE if label == "ties" else label): int(counts[label].sum()) for label in EMBREE_CLASSES}})
     return pd.DataFrame(records)
+
+
+def plugin_by_class(rows: list[dict]) -> list[dict]:
+    """Per plug-in accelerator and scene: rays compared and disagreements by class (all ray kinds), or its failure.
+
+    A failed plug-in's record has no counts, only its ``status`` (``failed: ...``).
+    """
+    records = []
+    for row in rows:
+        record = {"plug-in": row["plugin"], "scene": row["scene"], "status": row.get("failed") or "ok"}
+        if not row.get("failed"):
+            counts = pd.DataFrame(row["agreement_counts"])
+            record.update({"rays compared": int(counts["rays"].sum()), "agree": int(counts["agree"].sum()),
+                           **{(TIE if label == "ties" else label): int(counts[label].sum()) for label in EMBREE_CLASSES}})
+        records.append(record)
+    return records
+
+
+def plugin_metrics(records: list[dict]) -> list[Metric]:
+    """``agreement/SCENE/plugin:SPEC/{unexplained_embree,wrong_embree,failed}`` (``zero``), never in a baseline."""
+    from reports.plugins import metric_name
+
+    metrics = []
+    for row in records:
+        failed = row["status"] != "ok"
+        metrics.append(Metric(metric_name("agreement", row["scene"], row["plug-in"], "failed"), "zero", int(failed),
+                              row["status"] if failed else "ran"))
+        if not failed:
+            metrics += [Metric(metric_name("agreement", row["scene"], row["plug-in"], name), "zero", int(row[label]),
+                               f"of {int(row['rays compared']):,} ray comparisons, 5 ray kinds")
+                        for name, label in (("unexplained_embree", UNEXPLAINED), ("wrong_embree", WRONG))]
+    return metrics
 
 
 def ztest_scenes(scenes: tuple[str, ...]) -> list[str]:
@@ -106,7 +142,8 @@ def mitsuba_ztests(names: list[str], config: Config, seed: int, out_dir: Path, p
     return pd.DataFrame(records), notes
 
 
-def generate(config: Config, profile_name: str, out_dir: Path, fresh: bool = False, progress: bool = True) -> list[Metric]:
+def generate(config: Config, profile_name: str, out_dir: Path, fresh: bool = False, progress: bool = True,
+             accelerators: list[str] | tuple[str, ...] = ()) -> list[Metric]:
     """Write the agreement report (agreement.md, agreement.csv, metrics/agreement.json).
 
     Parameters
@@ -122,12 +159,17 @@ def generate(config: Config, profile_name: str, out_dir: Path, fresh: bool = Fal
         Mitsuba references are cached by content (our renders are always redone).
     progress : bool
         Show progress bars.
+    accelerators : sequence of str
+        Plug-in accelerator specs: their disagreements by class from their Table 1 rows
+        (:func:`reports.table1.load_plugin_rows`; a plug-in without one, or that failed
+        there, is listed as ``failed: ...``), in a section of their own.
 
     Returns
     -------
     list of Metric
         ``agreement/SCENE/unexplained_embree`` (``zero``) for every scene and
-        ``agreement/SCENE/mitsuba_ztest`` (``pass``) for every Z-tested scene.
+        ``agreement/SCENE/mitsuba_ztest`` (``pass``) for every Z-tested scene; per plug-in
+        and scene :func:`plugin_metrics`.
     """
     out_dir = Path(out_dir)
     profile = config.profile(profile_name)
@@ -156,6 +198,20 @@ def generate(config: Config, profile_name: str, out_dir: Path, fresh: bool = Fal
     text += [f"> **Note:** {note}\n" for note in notes]
     if not mitsuba.empty:
         text.append(tabulate(mitsuba.to_dict("records"), headers="keys", tablefmt="github", floatfmt=".4g"))
+    if accelerators:
+        plugins = plugin_by_class(load_plugin_rows(config, profile_name, out_dir, list(accelerators)))
+        metrics += plugin_metrics(plugins)
+        for row in plugins:
+            if row["status"] != "ok":
+                warnings.warn(f"agreement: plug-in {row['plug-in']!r} on {row['scene']}: {row['status']}", ReportNote,
+                              stacklevel=2)
+        text += ["", "## Plug-in accelerators: disagreements with Embree by class\n",
+                 "Each plug-in (`--accelerator SPEC`) against Embree on the same rays, classifier and float64 oracle as "
+                 "our trees (from its Table 1 rows); `ours exact, Embree not` counts rays where the plug-in equals the "
+                 "oracle and Embree does not. Unexplained and wrong must be 0. Per ray kind: "
+                 "`kdtrace check-embree SCENE --accelerator SPEC`.\n",
+                 tabulate(plugins, headers="keys", tablefmt="github", intfmt=",", missingval="")]
+        atomic_write_bytes(out_dir / "agreement_plugins.csv", pd.DataFrame(plugins).to_csv(index=False).encode())
     atomic_write_bytes(out_dir / "agreement.md", ("\n".join(text) + "\n").encode())
     table = embree.merge(mitsuba, on="scene", how="left") if not mitsuba.empty else embree
     atomic_write_bytes(out_dir / "agreement.csv", table.to_csv(index=False).encode())

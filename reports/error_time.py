@@ -27,6 +27,10 @@ scene's default camera, the error of five methods against a Mitsuba reference of
     AOV is the BSDF albedo at the first hit (mirrors and glass included), which is what our
     renderer's albedo buffer holds on diffuse surfaces; the networks were trained on ours.
 
+Plug-in denoisers (``kdtrace report --denoiser SPEC``, :mod:`reports.plugins`) add the method
+``kdtrace+SPEC``: our path tracer with albedo and normal + the plug-in, measured as
+``kdtrace+oidn`` (:func:`measure_plugin_scene`), in every table, the plots and the headline.
+
 Seconds of a pipeline = render + reconstruction, warm: our render time is the kernel's
 wall time (``RenderResult.seconds``: scene packing and kernel compilation excluded); a
 reconstruction step is timed after one warm-up call on the same input. Every timing is
@@ -43,7 +47,8 @@ when no measured point does — never extrapolated) and the headline speed-up of
 pipeline over Mitsuba at equal error.
 
 Rows are measured per scene and cached in ``OUT_DIR/rows/error_time/SCENE.json`` with a
-content key; a rerun reuses them (and says so), ``fresh=True`` measures again.
+content key; a rerun reuses them (and says so), ``fresh=True`` measures again. Plug-in rows
+are cached apart, in ``OUT_DIR/rows/error_time-plugins/SCENE/``.
 """
 
 from __future__ import annotations
@@ -70,6 +75,7 @@ from kdtrace.cache import atomic_write_bytes, content_key
 from kdtrace.config import Config, ProfileConfig, ReconstructionProfile
 from kdtrace.provenance import stamp
 from reports.metrics import Metric, write_metrics
+from reports.notes import ReportNote
 from reports.paper_figures import ACCEPTABLE_PSNR
 
 #: Bump when what a row measures changes: cached rows become stale.
@@ -93,6 +99,32 @@ PIPELINES = ("kdtrace+denoiser", "kdtrace+denoiser-blend", "kdtrace-half+denoise
 DENOISING = (*PIPELINES, "kdtrace+oidn", "mitsuba+oidn")
 #: The brute-force renderer each pipeline starts from (its own renderer's curve is the first comparison).
 RENDERER = {method: "mitsuba" if method.startswith("mitsuba") else "kdtrace" for method in METHODS}
+#: Bump when what a plug-in denoiser's row measures changes.
+PLUGIN_ROW_VERSION = 1
+
+
+def plugin_method(spec: str) -> str:
+    """The sweep method of the plug-in denoiser ``spec``: ``kdtrace+SPEC`` (``kdtrace+plugin:SPEC`` if that is one of ours)."""
+    method = f"kdtrace+{spec}"
+    return f"kdtrace+plugin:{spec}" if method in METHODS else method
+
+
+def method_label(method: str) -> str:
+    """A method's label: :data:`METHODS`'s, or ``ours + plug-in SPEC`` for a plug-in denoiser's."""
+    return METHODS.get(method) or f"ours + plug-in {method.removeprefix('kdtrace+').removeprefix('plugin:')}"
+
+
+def methods_of(points: pd.DataFrame) -> list[str]:
+    """The methods of ``points`` in table order: ours (:data:`METHODS`) first, then plug-ins in measured order."""
+    present = list(dict.fromkeys(points["method"]))
+    return [m for m in METHODS if m in present] + [m for m in present if m not in METHODS]
+
+
+def denoising_methods(methods: Sequence[str]) -> list[str]:
+    """The headline's pipelines among ``methods``: :data:`DENOISING` and every plug-in denoiser's."""
+    return [m for m in DENOISING if m in methods] + [m for m in methods if m not in METHODS]
+
+
 #: PSNR thresholds (dB) of the equal-error table: the paper's acceptable 30 dB, and 35 dB.
 PSNR_THRESHOLDS = (ACCEPTABLE_PSNR, 35.0)
 #: relMSE thresholds of the equal-error table.
@@ -581,6 +613,102 @@ def measure_scene(name: str, config: Config, profile_name: str, models: Reconstr
     }
 
 
+def measure_plugin_scene(name: str, spec: str, config: Config, profile_name: str,
+                         progress: tqdm | None = None) -> dict[str, Any]:
+    """The plug-in denoiser ``spec`` after our path tracer at every ``sweep_spp`` on one scene.
+
+    Measured as ``kdtrace+oidn`` is in :func:`measure_scene`: the same frame (our render
+    with albedo and normal, same seed; its kernel seconds, shortest of
+    :data:`TIMING_REPEATS`), the plug-in timed warm on float32 copies of the buffers, the
+    same Mitsuba reference (from the cache when the sweep rendered it). A
+    :class:`~kdtrace.plugins.PluginError` ends the row: it then holds ``failed``
+    (``failed: MESSAGE``) and the points measured before.
+
+    Returns
+    -------
+    dict
+        ``scene``, ``plugin``, ``points`` (method :func:`plugin_method`), ``warnings``, maybe ``failed``.
+    """
+    from kdtrace.kdtree import build_kdtree
+    from kdtrace.plugins import PluginError, load_denoiser
+    from kdtrace.render import render
+    from kdtrace.scenes import load_scene
+    from references.mitsuba import render_reference
+    from reports.plugins import failure
+
+    profile = config.profile(profile_name)
+    recon = config.reconstruction.profile(profile.reconstruction_profile)
+    width, height, depth = profile.sweep_width, profile.sweep_height, recon.max_depth
+    method = plugin_method(spec)
+    row: dict[str, Any] = {"scene": name, "plugin": spec, "method": method, "points": []}
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        scene = load_scene(name)
+        tree = build_kdtree(scene, "local", config.kdtree)
+        reference = render_reference(scene, profile.sweep_reference_spp, depth, profile.seed % 2**32, width, height)
+        try:
+            denoiser = load_denoiser(spec)
+            for spp in profile.sweep_spp:
+                if progress is not None:
+                    progress.set_postfix_str(f"{name}: plug-in {spec}, {spp} spp")
+                result, seconds = shortest(lambda spp=spp: render(scene, spp=spp, max_depth=depth, seed=profile.seed,
+                                                                  width=width, height=height, aux=True, tree=tree),
+                                           warmup=0, seconds_of=lambda r: r.seconds)
+                frame = AuxFrame(*(np.ascontiguousarray(a, np.float32) for a in (result.rgb, result.albedo, result.normal)))
+                image, steps = timed_reconstruction([lambda f: denoiser(f.rgb, f.albedo, f.normal)], frame)
+                row["points"].append(_point(method, spp, width, height, seconds, steps, image, reference.rgb,
+                                            errors(frame.rgb, reference.rgb)["psnr"]))
+        except PluginError as error:
+            row["failed"] = failure(error)
+    row["warnings"] = sorted({str(w.message) for w in caught})
+    return row
+
+
+def plugin_scene_rows(specs: Sequence[str], config: Config, profile_name: str, out_dir: Path, fresh: bool,
+                      progress: bool) -> list[dict]:
+    """:func:`measure_plugin_scene` of every plug-in on every reconstruction scene, cached apart from our rows.
+
+    A row is kept in ``out_dir/rows/error_time-plugins/SCENE/SLUG.json`` under a content
+    key of the spec, a hash of the plug-in's source, :data:`PLUGIN_ROW_VERSION` and the
+    settings of :func:`scene_rows`; a failed row is measured again on the next run.
+    """
+    from kdtrace.plugins import DENOISER_GROUP
+    from reports.plugins import fingerprint, slug
+
+    profile = config.profile(profile_name)
+    recon = config.reconstruction.profile(profile.reconstruction_profile)
+    settings = [dataclasses.asdict(profile), dataclasses.asdict(recon), dataclasses.asdict(config.kdtree),
+                dataclasses.asdict(config.render)]
+    pairs = [(spec, name) for spec in specs for name in profile.reconstruction_scenes]
+    rows = []
+    bar = tqdm(pairs, unit="row", desc=f"error_time plug-ins ({profile_name})", disable=not progress)
+    for spec, name in bar:
+        path = out_dir / "rows" / "error_time-plugins" / name / f"{slug(spec)}.json"
+        key = content_key("error_time-plugin-row", PLUGIN_ROW_VERSION, name, spec, fingerprint(spec, DENOISER_GROUP),
+                          TIMING_REPEATS, settings)
+        if not fresh and path.exists():
+            saved = json.loads(path.read_text())
+            if saved.get("key") == key and not saved["row"].get("failed"):
+                bar.write(f"error_time {name}: reusing plug-in {spec}'s row measured {saved['measured_at']}")
+                rows.append(saved["row"])
+                continue
+        row = measure_plugin_scene(name, spec, config, profile_name, bar)
+        atomic_write_bytes(path, json.dumps({"key": key, "measured_at": time.strftime("%Y-%m-%d %H:%M:%S"), "row": row},
+                                            indent=1).encode())
+        rows.append(row)
+    return rows
+
+
+def with_plugins(rows: Sequence[dict], plugin_rows: Sequence[dict]) -> list[dict]:
+    """Our rows (copies) with the plug-ins' points appended and their failures under ``plugin_failures``."""
+    merged = []
+    for row in rows:
+        extra = [p for p in plugin_rows if p["scene"] == row["scene"]]
+        merged.append({**row, "points": [*row["points"], *(point for p in extra for point in p["points"])],
+                       "plugins": {p["plugin"]: p.get("failed") or "ok" for p in extra}})
+    return merged
+
+
 def scene_rows(kind: str, version: int, measure_scene: Callable[..., dict], config: Config, profile_name: str,
                out_dir: Path, fresh: bool, progress: bool, blend_spp: Sequence[int] = ()) -> list[dict]:
     """Per-scene rows of a report over the profile's reconstruction scenes, reused when their key matches.
@@ -640,7 +768,7 @@ def scene_rows(kind: str, version: int, measure_scene: Callable[..., dict], conf
 
 
 def generate(config: Config, profile_name: str, out_dir: str | Path, fresh: bool = False,
-             progress: bool = True) -> list[Metric]:
+             progress: bool = True, denoisers: Sequence[str] = ()) -> list[Metric]:
     """Measure (or reuse) the run-time-against-error sweep and write its report.
 
     Parameters
@@ -657,6 +785,10 @@ def generate(config: Config, profile_name: str, out_dir: str | Path, fresh: bool
         Measure every scene again instead of reusing cached rows.
     progress : bool
         tqdm progress bars.
+    denoisers : sequence of str
+        Plug-in denoiser specs (``kdtrace report --denoiser``): the method ``kdtrace+SPEC``
+        (:func:`measure_plugin_scene`) in the tables, the plots and the headline, cached
+        apart from our rows (whose keys do not depend on them).
 
     Returns
     -------
@@ -664,11 +796,19 @@ def generate(config: Config, profile_name: str, out_dir: str | Path, fresh: bool
         Per scene: ``error_time/SCENE/kdtrace_over_mitsuba_paths_per_second`` (ratio, our
         path tracer over Mitsuba at the largest sweep spp, same run) and
         ``error_time/SCENE/denoiser_psnr_Nspp`` (psnr, ours + denoiser at the denoiser's
-        training spp, fixed seeds).
+        training spp, fixed seeds); per plug-in ``error_time/SCENE/plugin:SPEC/failed``
+        (zero) and ``.../psnr_Nspp`` (psnr).
     """
     out_dir = Path(out_dir)
     rows = scene_rows("error_time", ROW_VERSION, measure_scene, config, profile_name, out_dir, fresh, progress,
                       blend_spp=config.profile(profile_name).sweep_spp)
+    if denoisers:
+        extra = plugin_scene_rows(list(denoisers), config, profile_name, out_dir, fresh, progress)
+        for row in extra:
+            if row.get("failed"):
+                warnings.warn(f"error_time: plug-in {row['plugin']!r} on {row['scene']}: {row['failed']}", ReportNote,
+                              stacklevel=2)
+        rows = with_plugins(rows, extra)
     metrics = write_outputs(rows, config, profile_name, out_dir)
     write_metrics(out_dir, "error_time", metrics)
     return metrics
@@ -709,6 +849,24 @@ def scene_metrics(row: dict, profile: ProfileConfig, recon: ReconstructionProfil
         metrics.append(Metric(f"error_time/{name}/blended_denoiser_not_below_input", "pass", bool(len(losses) == 0),
                               "ours + denoiser blended with its input is at least the input's PSNR at every sweep spp"
                               + (f" (below at {', '.join(map(str, losses['spp']))} spp)" if len(losses) else "")))
+    return metrics + plugin_metrics(row, recon)
+
+
+def plugin_metrics(row: dict, recon: ReconstructionProfile) -> list[Metric]:
+    """A scene's plug-in denoiser metrics: ``error_time/SCENE/plugin:SPEC/failed`` (zero), ``.../psnr_Nspp`` (psnr)."""
+    from reports.plugins import metric_name
+
+    points = pd.DataFrame(row["points"])
+    metrics = []
+    for spec, status in row.get("plugins", {}).items():
+        failed = status != "ok"
+        metrics.append(Metric(metric_name("error_time", row["scene"], spec, "failed"), "zero", int(failed),
+                              status if failed else "ran"))
+        at = points[(points["method"] == plugin_method(spec)) & (points["spp"] == recon.spp)]
+        if len(at) and math.isfinite(float(at["psnr"].iloc[0])):
+            metrics.append(Metric(metric_name("error_time", row["scene"], spec, f"psnr_{recon.spp}spp"), "psnr",
+                                  float(at["psnr"].iloc[0]),
+                                  f"dB, ours + plug-in at {recon.spp} spp vs Mitsuba {row['reference']['spp']} spp"))
     return metrics
 
 
@@ -734,11 +892,13 @@ def plot_scene(row: dict, path: Path) -> Path:
 
     points = pd.DataFrame(row["points"])
     figure, (left, right) = plt.subplots(1, 2, figsize=(11, 4.2), constrained_layout=True)
-    for method, label in METHODS.items():
+    for method in methods_of(points):
+        label = method_label(method)
         group = points[points["method"] == method].sort_values("spp")
         if group.empty:
             continue
-        style = "-o" if method in PIPELINES else "--s" if method == "mitsuba" else "-^"
+        style = ("-o" if method in PIPELINES else "--s" if method == "mitsuba" else "-^" if method in METHODS
+                 else ":D")
         left.loglog(group["seconds"], group["relmse"], style, label=label, markersize=4)
         right.semilogx(group["seconds"], group["psnr"], style, label=label, markersize=4)
         for axis, column in ((left, "relmse"), (right, "psnr")):
@@ -773,8 +933,8 @@ def scene_markdown(row: dict, recon: ReconstructionProfile) -> str:
     lines = [f"## {name}", "", f"![{name}: error against seconds](error_time/{name}.png)", "", about, ""]
     below = losses_to_input(points)
     if len(below):
-        cells = [f"{METHODS[m]} at {spp} spp ({d:+.2f} dB)" for m, spp, d in zip(below["method"], below["spp"],
-                                                                              below["difference"], strict=True)]
+        cells = [f"{method_label(m)} at {spp} spp ({d:+.2f} dB)" for m, spp, d in zip(below["method"], below["spp"],
+                                                                                   below["difference"], strict=True)]
         lines += [f"Below their own noisy input's PSNR: {'; '.join(cells)}.", ""]
     else:
         lines += ["No reconstruction is below its own noisy input's PSNR at any spp.", ""]
@@ -783,21 +943,27 @@ def scene_markdown(row: dict, recon: ReconstructionProfile) -> str:
         lines += ["Blend weights w(spp) of the denoiser (fitted on the validation views): "
                   + ", ".join(f"{spp} spp {w:.2f}" for spp, w in zip(blended["spp"], blended["weight"], strict=True))
                   + ".", ""]
+    failures = {spec: status for spec, status in row.get("plugins", {}).items() if status != "ok"}
+    if failures:
+        lines += [f"Plug-in {spec}: {status}" + ("" if not len(points[points["method"] == plugin_method(spec)]) else
+                                                  " (its points before the failure are shown)") + "."
+                  for spec, status in failures.items()] + [""]
     reach = equal_error_table(points)
     mitsuba_max = float(points[points["method"] == "mitsuba"]["seconds"].max())
     header = ["method", *next(iter(reach.values())).keys()]
-    body = [[METHODS[method], *(cell.cell() for cell in cells.values())] for method, cells in reach.items()]
-    for pipeline in (method for method in DENOISING if method in reach):
-        body.append([f"speed-up of {METHODS[pipeline]} over Mitsuba",
+    order = methods_of(points)
+    body = [[method_label(method), *(cell.cell() for cell in reach[method].values())] for method in order]
+    for pipeline in denoising_methods(order):
+        body.append([f"speed-up of {method_label(pipeline)} over Mitsuba",
                      *(speedup_cell(reach["mitsuba"][key], reach[pipeline][key], mitsuba_max) for key in header[1:])])
     lines += ["Equal error: seconds to reach each threshold.", "", tabulate(body, headers=header, tablefmt="github"), ""]
     grid = common_seconds(float(points["seconds"].min()), float(points["seconds"].max()))
     if grid:
         table = equal_time_table(points, grid)
         body = []
-        for method, label in METHODS.items():
+        for method in order:
             part = table[table["method"] == method]
-            body.append([label, *(f"{_format(p, '.1f')} / {_format(r, '.2g')}"
+            body.append([method_label(method), *(f"{_format(p, '.1f')} / {_format(r, '.2g')}"
                                             for p, r in zip(part["psnr"], part["relmse"], strict=True))])
         lines += ["Equal time: PSNR dB / relMSE at common seconds (interpolated; — outside the measured range).", "",
                   tabulate(body, headers=["method", *(f"{s:g} s" for s in grid)], tablefmt="github"), ""]
@@ -810,13 +976,14 @@ def headline_table(rows: Sequence[dict], recon: ReconstructionProfile) -> str:
     body = []
     for row in rows:
         points = pd.DataFrame(row["points"])
-        for pipeline in DENOISING:
+        for pipeline in denoising_methods(methods_of(points)):
             if not ((points["method"] == pipeline) & (points["spp"] == recon.spp)).any():
                 continue
+            renderer = RENDERER.get(pipeline, "kdtrace")  # a plug-in denoiser runs after our path tracer
             result = headline(points, recon.spp, pipeline)
-            own = headline(points, recon.spp, pipeline, RENDERER[pipeline])
-            body.append([row["scene"], METHODS[pipeline], f"{result['psnr']:.2f}", f"{result['seconds']:.3g}",
-                         own["speedup"] if RENDERER[pipeline] == "kdtrace" else "(same)",
+            own = headline(points, recon.spp, pipeline, renderer)
+            body.append([row["scene"], method_label(pipeline), f"{result['psnr']:.2f}", f"{result['seconds']:.3g}",
+                         own["speedup"] if renderer == "kdtrace" else "(same)",
                          result["reference"].cell(), result["speedup"]])
     return tabulate(body, headers=["scene", f"pipeline at {recon.spp} spp", "PSNR dB", "seconds",
                                    "speed-up over our brute force", "Mitsuba seconds to the same PSNR",

@@ -355,7 +355,10 @@ def update_baseline(out_dir: str | Path, profile_name: str, baseline: str | Path
         general = baseline_path(profile_name)
         same_model = not general.exists() or baseline_cpu(general) == cpu
         path = general if same_model else general.with_name(f"{profile_name}.{cpu_slug(cpu)}.json")
-    run = read_run(out_dir)
+    from reports.plugins import is_plugin_metric
+
+    # plug-ins' metrics (kdtrace report --accelerator/--denoiser) belong to that run, never to the baseline
+    run = {name: metric for name, metric in read_run(out_dir).items() if not is_plugin_metric(name)}
     previous = read_baseline(path) if path.exists() else {}
     old_text = baseline_document(profile_name, previous) if previous else ""
     write_baseline(path, profile_name, run, cpu)

@@ -5,6 +5,7 @@ How to use::
     kdtrace report                          # quick profile, all parts, into reports/quick/
     kdtrace report --profile paper --gate   # full scale, then the regression gate
     kdtrace report --scenes car,bunny --parts table1,agreement
+    kdtrace report --scenes cbox-original --accelerator my_bvh:make --denoiser bilateral   # plug-ins' rows too
 
     from reports.main import run_report
     outcome = run_report(config, "quick", Path("reports/quick"), gate=True)
@@ -12,7 +13,9 @@ How to use::
 The parts (:data:`PARTS`) run in order; each is a module with
 ``generate(config, profile_name, out_dir, fresh=False, progress=True) -> list[Metric]``
 that writes its own tables and plots into ``out_dir`` and its gated metrics to
-``out_dir/metrics/PART.json``. Modules are imported by dotted name only when the run
+``out_dir/metrics/PART.json``; a part whose ``generate`` also takes ``accelerators`` or
+``denoisers`` gets the plug-ins named by ``--accelerator`` / ``--denoiser``
+(:mod:`reports.plugins`). Modules are imported by dotted name only when the run
 starts, and all of them are looked up before any work, so a missing one is a clear
 error at once. ``--scenes`` restricts the profile's ``scenes`` (and its
 ``reconstruction_scenes`` to those among them) for every part.
@@ -29,6 +32,7 @@ from __future__ import annotations
 import dataclasses
 import importlib
 import importlib.util
+import inspect
 import json
 import time
 import warnings
@@ -39,6 +43,7 @@ from kdtrace.config import Config
 from kdtrace.provenance import stamp
 from reports.metrics import Metric
 from reports.notes import ReportNote
+from reports.plugins import check_specs
 
 #: Report parts in the order they run: name -> module with a ``generate`` function.
 PARTS = {
@@ -143,8 +148,14 @@ def _written(before: dict[str, int], after: dict[str, int]) -> list[str]:
                   if before.get(name) != mtime and name not in BOOKKEEPING and not name.startswith("rows/"))
 
 
+def _plugin_arguments(generate, plugins: dict[str, list[str]]) -> dict[str, list[str]]:
+    """The plug-in keyword arguments (``accelerators``, ``denoisers``) a part's ``generate`` takes, when given."""
+    parameters = inspect.signature(generate).parameters
+    return {name: specs for name, specs in plugins.items() if specs and name in parameters}
+
+
 def _run_part(name: str, module_name: str, config: Config, profile_name: str, out_dir: Path, fresh: bool,
-              progress: bool) -> PartRun:
+              progress: bool, plugins: dict[str, list[str]] | None = None) -> PartRun:
     from references.llvm import LLVMFallbackWarning
 
     module = importlib.import_module(module_name)
@@ -152,7 +163,8 @@ def _run_part(name: str, module_name: str, config: Config, profile_name: str, ou
     started = time.perf_counter()
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        metrics = module.generate(config, profile_name, out_dir, fresh=fresh, progress=progress)
+        metrics = module.generate(config, profile_name, out_dir, fresh=fresh, progress=progress,
+                                  **_plugin_arguments(module.generate, plugins or {}))
     seconds = time.perf_counter() - started
     notes = []
     for warning in caught:
@@ -192,7 +204,8 @@ def _index(parts: list[PartRun], profile_name: str, provenance: dict, gate_line:
 
 def run_report(config: Config, profile_name: str, out_dir: str | Path, scenes: list[str] | None = None,
                fresh: bool = False, gate: bool = False, parts: list[str] | None = None,
-               progress: bool = True) -> ReportOutcome:
+               progress: bool = True, accelerators: list[str] | tuple[str, ...] = (),
+               denoisers: list[str] | tuple[str, ...] = ()) -> ReportOutcome:
     """Run the report parts of a profile, then write the index and provenance, and gate if asked.
 
     Parameters
@@ -214,6 +227,11 @@ def run_report(config: Config, profile_name: str, out_dir: str | Path, scenes: l
         Names from :data:`PARTS` (default: all, in order).
     progress : bool
         Progress bars and per-part summaries on the terminal.
+    accelerators, denoisers : sequence of str
+        Plug-in specs (``--accelerator`` / ``--denoiser``; :mod:`reports.plugins`): passed to
+        the parts that take them (Table 1 and agreement; Tables 2 and 6 and the error-time
+        sweep). Every spec is resolved first, so one that cannot be imported fails before
+        any work; a plug-in that raises or returns invalid output is recorded in its rows.
 
     Returns
     -------
@@ -225,6 +243,8 @@ def run_report(config: Config, profile_name: str, out_dir: str | Path, scenes: l
     profile = config.profile(profile_name)
     config = restrict_scenes(config, profile_name, scenes)
     modules = resolve_parts(parts)
+    plugins = {"accelerators": list(accelerators), "denoisers": list(denoisers)}
+    check_specs(plugins["accelerators"], plugins["denoisers"])  # an unknown or unimportable plug-in fails first
     if gate:
         gate_module.read_baseline(gate_module.baseline_path(profile_name))  # a missing or malformed baseline fails first
     out_dir = Path(out_dir)
@@ -234,7 +254,7 @@ def run_report(config: Config, profile_name: str, out_dir: str | Path, scenes: l
     for name, module_name in modules.items():
         if progress:
             print(f"== {name} ({module_name})", flush=True)
-        run = _run_part(name, module_name, config, profile_name, out_dir, fresh, progress)
+        run = _run_part(name, module_name, config, profile_name, out_dir, fresh, progress, plugins)
         runs.append(run)
         if progress:
             print(f"== {name}: {run.seconds:.0f} s, {len(run.metrics)} metrics, wrote {', '.join(run.files) or 'nothing'}")
@@ -250,7 +270,7 @@ def run_report(config: Config, profile_name: str, out_dir: str | Path, scenes: l
     seeds = {"profile": profile.seed, "render": config.render.seed, "embree_check": config.embree_check.seed}
     if profile.reconstruction_profile in config.reconstruction.profiles:
         seeds["reconstruction"] = config.reconstruction.profile(profile.reconstruction_profile).seed
-    provenance = stamp(config.to_dict(), profile=profile_name, seeds=seeds, fresh=fresh,
+    provenance = stamp(config.to_dict(), profile=profile_name, seeds=seeds, fresh=fresh, plugins=plugins,
                        parts={r.name: {"seconds": round(r.seconds, 1), "notes": r.notes, "files": r.files} for r in runs})
     atomic_write_bytes(out_dir / "provenance.json", json.dumps(provenance, indent=1, default=str).encode())
     gate_line = outcome.gate_text.strip().splitlines()[-1] if gate else ""

@@ -108,7 +108,69 @@ def reference_noise(dataset, split: str, spp: int, reference_spp: int) -> dict[s
     return {"lowest_psnr": float(min(values)), "median_psnr": float(np.median(values)), "views": len(values)}
 
 
-def _measure(config: Config, profile_name: str, fresh: bool, progress: bool) -> tuple[dict[str, Any], dict[str, Any]]:
+def measure_plugin_denoisers(specs: list[str], scenes: list[str], datasets: dict[str, Any], frames: dict[str, Any],
+                             timing: dict[str, Any]) -> dict[str, dict[str, dict]]:
+    """Each plug-in denoiser on the same test views as ours and OIDN, and timed on Table 6's frame.
+
+    Parameters
+    ----------
+    specs : list of str
+        Plug-in specs (:func:`kdtrace.plugins.load_denoiser`).
+    scenes : list of str
+    datasets : dict
+        Scene -> dataset (``views(split)``, ``load_view(name)``).
+    frames : dict
+        Scene -> :class:`reconstruction.speed.Frame` of Table 6.
+    timing : dict
+        Scene -> Table 6's timing record (its OIDN seconds on the same frame).
+
+    Returns
+    -------
+    dict
+        Spec -> scene -> ``test`` (:func:`reconstruction.evaluate.pooled` over the test
+        views, fed noisy colour, albedo and normal as float32), ``views``, ``seconds``
+        (median of 3 calls after a warm-up on the frame), ``oidn_seconds`` (Table 6's),
+        ``oidn_over_plugin`` and ``psnr`` (of the timed output against the frame's
+        reference); or ``failed`` (``failed: MESSAGE``) when the plug-in's factory or a call
+        raised or returned invalid output (:class:`kdtrace.plugins.PluginError`).
+    """
+    from kdtrace.plugins import PluginError, load_denoiser
+    from reconstruction import evaluate, metrics, speed
+    from reports.plugins import failure
+
+    def buffers(view: dict[str, np.ndarray]) -> tuple[np.ndarray, ...]:
+        return tuple(np.ascontiguousarray(view[key], np.float32) for key in ("noisy", "albedo", "normal"))
+
+    results: dict[str, dict[str, dict]] = {}
+    for spec in specs:
+        try:
+            denoiser = load_denoiser(spec)
+        except PluginError as error:
+            results[spec] = {name: {"failed": failure(error)} for name in scenes}
+            continue
+        results[spec] = {}
+        for name in scenes:
+            try:
+                outputs, references = [], []
+                for view_name in datasets[name].views("test"):
+                    view = datasets[name].load_view(view_name)
+                    outputs.append(denoiser(*buffers(view)))
+                    references.append(view["reference"])
+                frame = frames[name]
+                seconds, image = speed.median_seconds(
+                    lambda denoiser=denoiser, frame=frame: denoiser(frame.color, frame.albedo, frame.normal))
+                oidn_seconds = timing[name]["denoise"]["oidn_seconds"]
+                results[spec][name] = {"test": evaluate.pooled(outputs, references), "views": len(outputs),
+                                       "seconds": seconds, "oidn_seconds": oidn_seconds,
+                                       "oidn_over_plugin": oidn_seconds / seconds,
+                                       "psnr": metrics.psnr(image, frame.reference)}
+            except PluginError as error:
+                results[spec][name] = {"failed": failure(error)}
+    return results
+
+
+def _measure(config: Config, profile_name: str, fresh: bool, progress: bool,
+             denoisers: list[str] | tuple[str, ...] = ()) -> tuple[dict[str, Any], dict[str, Any]]:
     """Train or reuse everything and measure every number of the tables.
 
     Returns the measurements (JSON-ready) and the objects the figures are drawn from
@@ -185,10 +247,10 @@ def _measure(config: Config, profile_name: str, fresh: bool, progress: bool) -> 
     }
     bar.update()
 
-    timing = {}
+    timing, frames = {}, {}
     for name in scenes:
         step(f"frame {name}")
-        frame = speed.render_frame(name, profile.frame_width, profile.frame_height, profile.frame_spp,
+        frames[name] = frame = speed.render_frame(name, profile.frame_width, profile.frame_height, profile.frame_spp,
                                    recon.max_depth, profile.seed, recon.reference_spp, cache=not fresh)
         bar.update()
         step(f"timing {name}")
@@ -204,7 +266,11 @@ def _measure(config: Config, profile_name: str, fresh: bool, progress: bool) -> 
         }
         bar.update()
     bar.close()
+    plugins = {}
+    if denoisers:
+        plugins["plugin_denoisers"] = measure_plugin_denoisers(list(denoisers), scenes, datasets, frames, timing)
     return {
+        **plugins,
         "profile": profile_name, "reconstruction_profile": profile.reconstruction_profile, "scenes": scenes,
         "unseen": unseen, "frame": [profile.frame_width, profile.frame_height], "frame_spp": profile.frame_spp,
         "stages": [dataclasses.asdict(s) for s in stages],
@@ -270,6 +336,30 @@ def _table2(m: dict) -> list[dict]:
     rows.append({"scene": "all scenes", "model": "per-scene", "train_psnr": None, "validation_psnr": None,
                  "test_psnr": per_scene["psnr"], "test_rmse": per_scene["rmse"], "test_views": per_scene["images"],
                  "paper_test_psnr": None, "paper_test_rmse": None, "model_source": "each scene's own model"})
+    return rows + _table2_plugins(m)
+
+
+def _table2_plugins(m: dict) -> list[dict]:
+    """Table 2's rows of the plug-in denoisers (model ``plug-in SPEC``): per scene, and pooled when none failed."""
+    from reconstruction.evaluate import combine
+
+    rows = []
+    for spec, by_scene in m.get("plugin_denoisers", {}).items():
+        for name in m["scenes"]:
+            result, test = by_scene[name], m["quality"][name]["ours"]["test"]
+            oidn = test.get("oidn", {}).get("psnr")
+            if result.get("failed"):
+                rows.append({"scene": name, "model": f"plug-in {spec}", "model_source": result["failed"]})
+                continue
+            psnr = result["test"]["psnr"]
+            rows.append({"scene": name, "model": f"plug-in {spec}", "test_psnr": psnr, "test_rmse": result["test"]["rmse"],
+                         "noisy_test_psnr": test["noisy"]["psnr"], "gain_over_noisy": psnr - test["noisy"]["psnr"],
+                         "oidn_test_psnr": oidn, "minus_oidn": None if oidn is None else psnr - oidn,
+                         "test_views": result["views"], "model_source": "plug-in"})
+        if all(not by_scene[name].get("failed") for name in m["scenes"]):
+            pooled = combine([by_scene[name]["test"] for name in m["scenes"]])
+            rows.append({"scene": "all scenes", "model": f"plug-in {spec}", "test_psnr": pooled["psnr"],
+                         "test_rmse": pooled["rmse"], "test_views": pooled["images"], "model_source": "plug-in"})
     return rows
 
 
@@ -335,6 +425,23 @@ def _table6(m: dict) -> list[dict]:
                      "bicubic_over_ours": t["superres"]["bicubic_over_ours"],
                      "paper_denoise_s": paper.get("denoise_seconds"), "paper_superres_s": paper.get("superres_seconds"),
                      "threads": t["threads"]})
+    return rows
+
+
+def _table6_plugins(m: dict) -> list[dict]:
+    """Table 6's plug-in denoisers: seconds on the same frame beside Table 6's OIDN seconds."""
+    rows = []
+    width, height = m["frame"]
+    for spec, by_scene in m.get("plugin_denoisers", {}).items():
+        for name in m["scenes"]:
+            result = by_scene[name]
+            row = {"scene": name, "plug-in": spec, "frame": f"{width}x{height}"}
+            if result.get("failed"):
+                rows.append({**row, "status": result["failed"]})
+                continue
+            rows.append({**row, "plugin_denoise_s": result["seconds"], "oidn_s": result["oidn_seconds"],
+                         "oidn_over_plugin": result["oidn_over_plugin"], "plugin_psnr": result["psnr"],
+                         "oidn_psnr": m["timing"][name]["denoise"]["oidn_psnr"], "status": "ok"})
     return rows
 
 
@@ -428,6 +535,13 @@ def write_outputs(m: dict, config: Config, out_dir: Path) -> dict[str, pd.DataFr
         frames[stem] = pd.DataFrame(rows)
         scene_columns = ("scene", "data")
         text = _header(stem, m, provenance, reconstruction) + _markdown(rows, scene_columns) + "\n"
+        if stem == "table6" and m.get("plugin_denoisers"):
+            plugins = _table6_plugins(m)
+            text += ("\n## Plug-in denoisers\n\nEach plug-in (`kdtrace report --denoiser SPEC`) on the same frame: "
+                     "noisy colour, albedo and normal in, medians of 3 calls after a warm-up (its output validated "
+                     "on the clock); OIDN's seconds and PSNR are the table's above. A plug-in that raised or returned "
+                     "invalid output shows `failed: ...`.\n\n" + _markdown(plugins) + "\n")
+            atomic_write_bytes(out_dir / "table6_plugins.csv", pd.DataFrame(plugins).to_csv(index=False).encode())
         atomic_write_bytes(out_dir / f"{stem}.md", text.encode())
         atomic_write_bytes(out_dir / f"{stem}.csv", frames[stem].to_csv(index=False).encode())
     atomic_write_bytes(out_dir / "reconstruction_provenance.json",
@@ -492,11 +606,34 @@ def metrics_of(m: dict) -> list[Metric]:
                           "mixed denoiser on the far never-seen scene, all views, dB"))
     out.append(Metric("table5/photos/ours_test_psnr", "psnr", m["photos"]["test"]["ours"]["psnr"],
                       "superresolution 2x, held-out photos, dB"))
+    return out + plugin_metrics(m)
+
+
+def plugin_metrics(m: dict) -> list[Metric]:
+    """The plug-in denoisers' metrics: ``table2/SCENE/plugin:SPEC/{failed,test_psnr}``, ``table6/.../oidn_over_plugin_seconds``.
+
+    Never part of a baseline (:mod:`reports.plugins`); ``failed`` (``zero``) fails the run.
+    """
+    from reports.plugins import metric_name
+
+    out = []
+    for spec, by_scene in m.get("plugin_denoisers", {}).items():
+        for name in m["scenes"]:
+            result = by_scene[name]
+            out.append(Metric(metric_name("table2", name, spec, "failed"), "zero", int(bool(result.get("failed"))),
+                              result.get("failed") or "ran"))
+            if result.get("failed"):
+                continue
+            if math.isfinite(result["test"]["psnr"]):
+                out.append(Metric(metric_name("table2", name, spec, "test_psnr"), "psnr", result["test"]["psnr"],
+                                  "plug-in denoiser, test views, dB"))
+            out.append(Metric(metric_name("table6", name, spec, "oidn_over_plugin_seconds"), "ratio",
+                              result["oidn_over_plugin"], "OIDN seconds / plug-in seconds, same frame"))
     return out
 
 
 def generate(config: Config, profile_name: str, out_dir: str | Path, fresh: bool = False,
-             progress: bool = True) -> list[Metric]:
+             progress: bool = True, denoisers: list[str] | tuple[str, ...] = ()) -> list[Metric]:
     """Run (or reuse) the reconstruction experiments of a profile and write Tables 2, 3, 5, 6.
 
     Parameters
@@ -515,20 +652,30 @@ def generate(config: Config, profile_name: str, out_dir: str | Path, fresh: bool
         they are always reused; point ``KDTRACE_CACHE`` elsewhere to rebuild them.
     progress : bool
         Show a tqdm bar over the steps.
+    denoisers : sequence of str
+        Plug-in denoiser specs (``kdtrace report --denoiser``): each measured on the same
+        test views (Table 2 rows ``plug-in SPEC``) and timed on the same frame (a section
+        of table6.md and ``table6_plugins.csv``), :func:`measure_plugin_denoisers`. Not in
+        the figures.
 
     Returns
     -------
     list of Metric
         PSNRs (dB) of every per-scene, mixed and superresolution test result, the two
         parameter counts, and per scene the same-run speed ratios OIDN/ours and
-        bicubic/ours superresolution seconds (higher is better for us).
+        bicubic/ours superresolution seconds (higher is better for us); per plug-in
+        :func:`plugin_metrics`.
     """
     out_dir = Path(out_dir)
     if not config.profile(profile_name).reconstruction_scenes:
         warnings.warn(f"reconstruction tables skipped: profile {profile_name!r} has no reconstruction scenes "
                       "(left out by --scenes?)", ReportNote, stacklevel=2)
         return []
-    measurements, objects = _measure(config, profile_name, fresh, progress)
+    measurements, objects = _measure(config, profile_name, fresh, progress, denoisers)
+    for spec, by_scene in measurements.get("plugin_denoisers", {}).items():
+        for name, result in by_scene.items():
+            if result.get("failed"):
+                warnings.warn(f"reconstruction: plug-in {spec!r} on {name}: {result['failed']}", ReportNote, stacklevel=2)
     reused = [stage["name"] for stage in measurements["stages"] if stage["reused"]]
     if reused:
         warnings.warn(f"reconstruction: reused {len(reused)} of {len(measurements['stages'])} datasets and models "

@@ -18,6 +18,13 @@ With a Dask scheduler (``kdtrace report --scheduler ADDRESS``, ``$KDTRACE_SCHEDU
 the worker and its thread count; all ratios stay within one worker); the client writes
 the rows, so a rerun skips every scene already measured. Without one, rows are measured
 in this process on all its threads.
+
+Plug-in accelerators (``kdtrace report --accelerator SPEC``, :mod:`reports.plugins`) get
+a row per scene (:func:`plugin_row`: factory seconds, their optional ``stats``, Mrays/s
+beside Embree on the same rays, the agreement check), always measured in this process,
+after our rows, and cached apart in ``rows/table1-plugins/`` under a key holding the spec
+and a hash of the plug-in's source; our own rows and their keys are the same with or
+without plug-ins.
 """
 
 from __future__ import annotations
@@ -121,6 +128,16 @@ def frame_times(scene, trees: dict, width: int, height: int, spp: int, max_depth
             "frame_differing_pixels": int((naive.rgb != local.rgb).any(axis=-1).sum())}
 
 
+def timing_ray_sets(scene, profile) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """The timed rays of a scene: ``primary`` (one jittered frame at the profile's size and spp) and ``incoherent``."""
+    frame = [camera_rays(scene.camera, profile.frame_width, profile.frame_height, jitter=True,
+                         rng=np.random.default_rng(profile.seed + s)) for s in range(profile.frame_spp)]
+    return {
+        "primary": tuple(np.concatenate([f[i] for f in frame]) for i in range(2)),
+        "incoherent": random_rays(scene, profile.timing_rays, profile.seed),
+    }
+
+
 def scene_row(name: str, config: Config, profile_name: str, progress: tqdm) -> dict:
     """Measure one scene: tree statistics, throughput of both trees and Embree, frame times, agreement."""
     profile = config.profile(profile_name)
@@ -137,13 +154,7 @@ def scene_row(name: str, config: Config, profile_name: str, progress: tqdm) -> d
             row[f"{variant}_{key}"] = tree.stats[key]
     row["reference_reduction"] = 1.0 - row["local_triangle_references"] / row["naive_triangle_references"]
 
-    camera = scene.camera
-    frame = [camera_rays(camera, profile.frame_width, profile.frame_height, jitter=True, rng=np.random.default_rng(profile.seed + s))
-             for s in range(profile.frame_spp)]
-    ray_sets = {
-        "primary": tuple(np.concatenate([f[i] for f in frame]) for i in range(2)),
-        "incoherent": random_rays(scene, profile.timing_rays, profile.seed),
-    }
+    ray_sets = timing_ray_sets(scene, profile)
     for kind, (origins, directions) in ray_sets.items():
         progress.set_postfix_str(f"{name}: timing {kind} rays")
         seconds = interleaved_seconds({**trees, "embree": embree}, origins, directions)
@@ -234,7 +245,198 @@ def load_rows(config: Config, profile_name: str, out_dir: Path) -> list[dict]:
     return [records[name]["row"] for name in names]
 
 
-def generate(config: Config, profile_name: str, out_dir: Path, fresh: bool = False, progress: bool = True) -> list[Metric]:
+# ------------------------------------------------------------------ plug-in accelerators
+#: Version of the plug-in row layout; plug-in rows measured with another version are measured again.
+PLUGIN_ROW_VERSION = 1
+#: Keys of a plug-in's optional ``stats`` that Table 1 shows (blank when absent).
+PLUGIN_STATS = ("references", "bytes", "nodes", "build_seconds")
+
+
+def plugin_row(name: str, spec: str, config: Config, profile_name: str, progress: tqdm) -> dict:
+    """Measure one plug-in accelerator on one scene, as our trees are measured in :func:`scene_row`.
+
+    The factory's wall time (``load_seconds``), its ``stats`` (:data:`PLUGIN_STATS`),
+    Mrays/s on the same primary and incoherent rays as our trees, interleaved round by
+    round with Embree on as many threads (``plugin_over_embree``: median of the per-round
+    speed ratios; the plug-in's answers are validated on the clock, as in the benchmarks),
+    and the Embree agreement check on the same rays and classifier as our trees. A
+    :class:`~kdtrace.plugins.PluginError` (the plug-in raised or returned invalid output)
+    ends the measurement: the row then holds ``failed`` (``failed: MESSAGE``) and what was
+    measured before.
+    """
+    from kdtrace.plugins import PluginError, load_accelerator
+    from reports.plugins import failure
+
+    profile = config.profile(profile_name)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        scene = load_scene(name)
+    row: dict[str, object] = {"scene": name, "plugin": spec, "triangles": len(scene.triangles),
+                              "threads": numba.get_num_threads()}
+    try:
+        progress.set_postfix_str(f"{name}: plug-in {spec}: factory")
+        started = time.perf_counter()
+        accelerator = load_accelerator(spec, scene)
+        row["load_seconds"] = time.perf_counter() - started
+        stats = accelerator.stats
+        for key in PLUGIN_STATS:
+            value = stats.get(key)
+            row[key] = float(value) if isinstance(value, (int, float)) and not isinstance(value, bool) else None
+        embree = EmbreeIntersector(scene, threads=numba.get_num_threads())
+        for kind, (origins, directions) in timing_ray_sets(scene, profile).items():
+            progress.set_postfix_str(f"{name}: plug-in {spec}: timing {kind} rays")
+            seconds = interleaved_seconds({"plugin": accelerator, "embree": embree}, origins, directions)
+            row[f"{kind}_mrays_plugin"] = len(origins) / statistics.median(seconds["plugin"]) / 1e6
+            row[f"{kind}_mrays_embree"] = len(origins) / statistics.median(seconds["embree"]) / 1e6
+            row[f"{kind}_plugin_over_embree"] = paired_speedup(seconds["embree"], seconds["plugin"])
+        progress.set_postfix_str(f"{name}: plug-in {spec}: Embree agreement")
+        agreement = check_scene(scene, {spec: accelerator}, profile.agreement_rays_per_kind, profile.seed, progress=False)
+        row["agreement_rays"] = int(agreement["rays"].sum())
+        row["unexplained"] = int(agreement[UNEXPLAINED].sum())
+        row["wrong"] = int(agreement[WRONG].sum())
+        row["ours_exact"] = int(agreement[OURS_EXACT].sum())
+        row["agreement_table"] = format_table(agreement)
+        row["agreement_counts"] = agreement.to_dict("records")
+    except PluginError as error:
+        row["failed"] = failure(error)
+    row["warnings"] = sorted({str(w.message) for w in caught})
+    return row
+
+
+def _plugin_key(name: str, spec: str, config: Config, profile_name: str) -> str:
+    from kdtrace.plugins import ACCELERATOR_GROUP
+    from reports.plugins import fingerprint
+
+    profile = config.profile(profile_name)
+    return content_key("table1-plugin-row", PLUGIN_ROW_VERSION, name, spec, fingerprint(spec, ACCELERATOR_GROUP),
+                       {field: getattr(profile, field) for field in PROFILE_FIELDS}, numba.get_num_threads())
+
+
+def _plugin_path(out_dir: Path, name: str, spec: str) -> Path:
+    from reports.plugins import slug
+
+    return Path(out_dir) / "rows" / "table1-plugins" / name / f"{slug(spec)}.json"
+
+
+def cached_plugin_row(name: str, spec: str, config: Config, profile_name: str, out_dir: Path) -> dict | None:
+    """The saved record of plug-in ``spec`` on ``name`` if its key matches (spec, plug-in source, profile, threads)."""
+    path = _plugin_path(out_dir, name, spec)
+    if not path.exists():
+        return None
+    saved = json.loads(path.read_text())
+    return saved if saved.get("key") == _plugin_key(name, spec, config, profile_name) else None
+
+
+def load_plugin_rows(config: Config, profile_name: str, out_dir: Path, specs: list[str]) -> list[dict]:
+    """The Table 1 rows of plug-in accelerators ``specs`` on every scene (for the agreement part).
+
+    A plug-in without a row measured with this configuration gets a ``failed`` row saying
+    so (run the table1 part with the same ``--accelerator``), instead of an error that
+    would stop our own rows too.
+    """
+    rows = []
+    for spec in specs:
+        for name in config.profile(profile_name).scenes:
+            record = cached_plugin_row(name, spec, config, profile_name, out_dir)
+            rows.append(record["row"] if record is not None else
+                        {"scene": name, "plugin": spec, "failed": f"failed: no Table 1 row of plug-in {spec!r} on {name} "
+                         "measured with this configuration; run the table1 part with the same --accelerator"})
+    return rows
+
+
+def plugin_rows(config: Config, profile_name: str, out_dir: Path, specs: list[str], fresh: bool,
+                progress: bool) -> list[dict]:
+    """Measure (or reuse) every plug-in's row on every scene, in this process; cached under ``rows/table1-plugins/``.
+
+    A failed row is saved too (the agreement part shows it) but measured again on the next run.
+    """
+    names = list(config.profile(profile_name).scenes)
+    pairs = [(spec, name) for spec in specs for name in names]
+    rows, reused = [], []
+    bar = tqdm(pairs, unit="row", desc=f"Table 1 plug-ins ({profile_name})", disable=not progress)
+    for spec, name in bar:
+        saved = None if fresh else cached_plugin_row(name, spec, config, profile_name, out_dir)
+        if saved is not None and not saved["row"].get("failed"):
+            reused.append(f"{spec} on {name} ({saved['measured_at']})")
+            rows.append(saved["row"])
+            continue
+        row = plugin_row(name, spec, config, profile_name, bar)
+        atomic_write_bytes(_plugin_path(out_dir, name, spec), json.dumps(
+            {"key": _plugin_key(name, spec, config, profile_name), "measured_at": time.strftime("%Y-%m-%d %H:%M:%S"),
+             "row": row}, indent=1).encode())
+        rows.append(row)
+    if reused:
+        warnings.warn(f"Table 1: reused {len(reused)} of {len(pairs)} plug-in rows measured earlier: {', '.join(reused)}"
+                      " (--fresh measures again)", ReportNote, stacklevel=2)
+    for row in rows:
+        if row.get("failed"):
+            warnings.warn(f"Table 1: plug-in {row['plugin']!r} on {row['scene']}: {row['failed']}", ReportNote, stacklevel=2)
+    return rows
+
+
+def plugin_metrics(rows: list[dict]) -> list[Metric]:
+    """Gated metrics of plug-in rows: speed over Embree (``ratio``), wrong and unexplained hits, ``failed`` (``zero``).
+
+    Named ``table1/SCENE/plugin:SPEC/...``; never part of a baseline (:mod:`reports.plugins`).
+    """
+    from reports.plugins import metric_name
+
+    metrics = []
+    for row in rows:
+        def name(quantity: str, row=row) -> str:
+            return metric_name("table1", row["scene"], row["plugin"], quantity)
+
+        metrics.append(Metric(name("failed"), "zero", int(bool(row.get("failed"))), row.get("failed") or "ran"))
+        if row.get("failed"):
+            continue
+        metrics += [
+            Metric(name("over_embree_primary"), "ratio", float(row["primary_plugin_over_embree"]),
+                   "Mrays/s plug-in / Embree, primary rays of one frame"),
+            Metric(name("over_embree_incoherent"), "ratio", float(row["incoherent_plugin_over_embree"]),
+                   "Mrays/s plug-in / Embree, random rays"),
+            Metric(name("unexplained_disagreements"), "zero", int(row["unexplained"]),
+                   f"of {row['agreement_rays']:,} ray comparisons with Embree"),
+            Metric(name("wrong_hits"), "zero", int(row["wrong"]),
+                   f"of {row['agreement_rays']:,} rays: the float64 oracle finds a nearer hit than the plug-in"),
+        ]
+    return metrics
+
+
+def _cell(value, digits: int = 2, scale: float = 1.0) -> str:
+    return "" if value is None or (isinstance(value, float) and not np.isfinite(value)) else f"{value / scale:,.{digits}f}"
+
+
+def _seconds(value) -> str:
+    return "" if value is None else f"{value:.3g}"
+
+
+def plugin_markdown(rows: list[dict]) -> str:
+    """The plug-in accelerators' rows of Table 1 as Markdown (blank where a plug-in's ``stats`` say nothing)."""
+    lines = []
+    for row in rows:
+        failed = row.get("failed")
+        lines.append({
+            "scene": row["scene"], "plug-in": row["plugin"], "triangles": row.get("triangles", ""),
+            "factory s": _seconds(row.get("load_seconds")), "build s (stats)": _seconds(row.get("build_seconds")),
+            "references": _cell(row.get("references"), 0), "MB": _cell(row.get("bytes"), 2, 1e6),
+            "nodes": _cell(row.get("nodes"), 0),
+            "primary Mrays/s plug-in/Embree": ("" if "primary_mrays_plugin" not in row else
+                                               f"{row['primary_mrays_plugin']:.3g} / {row['primary_mrays_embree']:.3g}"),
+            "plug-in/Embree primary": _cell(row.get("primary_plugin_over_embree"), 3),
+            "incoherent Mrays/s plug-in/Embree": ("" if "incoherent_mrays_plugin" not in row else
+                                                  f"{row['incoherent_mrays_plugin']:.3g} / "
+                                                  f"{row['incoherent_mrays_embree']:.3g}"),
+            "plug-in/Embree incoherent": _cell(row.get("incoherent_plugin_over_embree"), 3),
+            "unexplained / wrong vs Embree": ("" if "unexplained" not in row else
+                                              f"{row['unexplained']} / {row['wrong']} of {row['agreement_rays']:,} ray comparisons"),
+            "plug-in exact, Embree not": "" if "ours_exact" not in row else f"{row['ours_exact']:,}",
+            "status": failed or "ok",
+        })
+    return tabulate(lines, headers="keys", tablefmt="github", disable_numparse=True)
+
+
+def generate(config: Config, profile_name: str, out_dir: Path, fresh: bool = False, progress: bool = True,
+             accelerators: list[str] | tuple[str, ...] = ()) -> list[Metric]:
     """Run (or resume) Table 1 for a profile; write table1.md, table1.csv and metrics/table1.json.
 
     Parameters
@@ -249,13 +451,19 @@ def generate(config: Config, profile_name: str, out_dir: Path, fresh: bool = Fal
         Ignore finished rows and measure again.
     progress : bool
         Show a progress bar and print the table at the end.
+    accelerators : sequence of str
+        Plug-in accelerator specs (``kdtrace report --accelerator``): a row per plug-in
+        and scene (:func:`plugin_row`), under "Plug-in accelerators" in table1.md and in
+        ``table1_plugins.csv``. They are measured in this process after our rows, also
+        when our rows go to Dask workers; their rows are cached apart
+        (``rows/table1-plugins/``), so our rows' keys do not depend on them.
 
     Returns
     -------
     list of Metric
         Per scene: local/Embree speed on primary and incoherent rays and local/naive frame
         speed (``ratio``), unexplained and wrong Embree disagreements (``zero``), triangle references
-        of both trees (``count``).
+        of both trees (``count``); and per plug-in :func:`plugin_metrics`.
     """
     from kdtrace.distributed import Unit, run_units, scheduler_address
 
@@ -287,10 +495,13 @@ def generate(config: Config, profile_name: str, out_dir: Path, fresh: bool = Fal
         message = f"Table 1: reused {len(reused)} of {len(names)} scene rows measured earlier: {', '.join(reused)} (--fresh measures again)"
         warnings.warn(message, ReportNote, stacklevel=2)
     table = pd.DataFrame(rows)
-    write_outputs(table, config, profile_name, out_dir)
+    extra = plugin_rows(config, profile_name, out_dir, list(accelerators), fresh, progress) if accelerators else []
+    write_outputs(table, config, profile_name, out_dir, extra)
     if progress:
         print(markdown_table(table))
-    metrics = table_metrics(rows)
+        if extra:
+            print(plugin_markdown(extra))
+    metrics = table_metrics(rows) + plugin_metrics(extra)
     write_metrics(out_dir, "table1", metrics)
     return metrics
 
@@ -353,8 +564,9 @@ def markdown_table(table: pd.DataFrame) -> str:
     return tabulate(lines, headers="keys", tablefmt="github")
 
 
-def write_outputs(table: pd.DataFrame, config: Config, profile_name: str, out_dir: Path) -> None:
-    """Write table1.md and table1.csv atomically."""
+def write_outputs(table: pd.DataFrame, config: Config, profile_name: str, out_dir: Path,
+                  plugins: list[dict] | None = None) -> None:
+    """Write table1.md and table1.csv atomically (and with plug-in rows, their section and table1_plugins.csv)."""
     profile = config.profile(profile_name)
     host = machine()
     header = (
@@ -372,6 +584,20 @@ def write_outputs(table: pd.DataFrame, config: Config, profile_name: str, out_di
         f"{profile.seed}. Provenance: provenance.json.\n\n"
     )
     out_dir.mkdir(parents=True, exist_ok=True)
-    atomic_write_bytes(out_dir / "table1.md", (header + markdown_table(table) + "\n").encode())
+    text = header + markdown_table(table) + "\n"
+    if plugins:
+        text += ("\n## Plug-in accelerators\n\n"
+                 "Each plug-in (`kdtrace report --accelerator SPEC`) on the same primary and incoherent rays as our "
+                 f"trees, interleaved round by round with Embree ({TIMING_ROUNDS} rounds, medians; its answers are "
+                 "validated on the clock, as in the benchmarks), measured in this process (not on Dask workers); "
+                 "factory s: wall time of its factory on the scene; build s, references, MB, nodes: from its optional "
+                 "`stats` (blank when it gives none); the agreement check uses the same rays, classifier and float64 "
+                 "oracle as our trees. A plug-in that raised or returned invalid output shows `failed: ...`.\n\n"
+                 + plugin_markdown(plugins) + "\n")
+    atomic_write_bytes(out_dir / "table1.md", text.encode())
     columns = [column for column in TEXT_COLUMNS if column in table.columns]
     atomic_write_bytes(out_dir / "table1.csv", table.drop(columns=columns).to_csv(index=False).encode())
+    if plugins:
+        extra = pd.DataFrame(plugins)
+        extra = extra.drop(columns=[column for column in TEXT_COLUMNS if column in extra.columns])
+        atomic_write_bytes(out_dir / "table1_plugins.csv", extra.to_csv(index=False).encode())
