@@ -186,7 +186,7 @@ def test_generate_end_to_end_and_reuse(shared_scenes, isolated_cache, tmp_path, 
     assert (csv["seconds"] >= csv["render_seconds"]).all() and np.isfinite(csv["psnr"]).all()
     blended = csv[csv["method"] == "kdtrace+denoiser-blend"]
     assert blended["weight"].between(0, 1).all() and np.isfinite(blended["input_psnr"]).all()
-    assert names["error_time/cbox-original/blended_denoiser_not_below_input"].kind == "pass"
+    assert names["error_time/cbox-original/blended_denoiser_margin_over_input_db"].kind == "psnr"
     mitsuba_denoised = csv[csv["method"].isin(["mitsuba+denoiser", "mitsuba+oidn"])]
     assert (mitsuba_denoised["reconstruction_seconds"] > 0).all() and np.isfinite(mitsuba_denoised["input_psnr"]).all()
     half = csv[csv["method"] == "kdtrace-half+denoiser+superres"]
