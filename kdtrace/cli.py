@@ -252,10 +252,10 @@ def build_parser() -> argparse.ArgumentParser:
     dataset.set_defaults(run=_dataset)
 
     report = sub.add_parser("report", help="the main job: every report part of a profile, an index, optionally the gate")
-    report.add_argument("--profile", default="quick", help="profile name from the configuration (quick, paper)")
+    report.add_argument("--profile", default="quick", help="profile name from the configuration (quick, standard, paper)")
     report.add_argument("--scenes", help="comma-separated subset of the profile's scenes")
     report.add_argument("--parts", help="comma-separated report parts (default all: table1, agreement, "
-                        "reconstruction, error_time, combined)")
+                        "reconstruction, error_time, combined, scaleout)")
     report.add_argument("--out", help="output folder (default reports/PROFILE)")
     report.add_argument("--fresh", action="store_true", help="measure everything again instead of reusing results")
     report.add_argument("--gate", action="store_true", help="then compare with reports/baseline/PROFILE.json; exit 1 on a regression")
