@@ -850,6 +850,24 @@ def scene_metrics(row: dict, profile: ProfileConfig, recon: ReconstructionProfil
         metrics.append(Metric(f"error_time/{name}/blended_denoiser_margin_over_input_db", "psnr", float(margins.min()),
                               "dB, the smallest PSNR gain over its own noisy input of ours + denoiser blended with the "
                               f"input, over the sweep spp (at {worst} spp); >= 0: never below the input"))
+    return metrics + plugin_metrics(row, recon)
+
+
+def plugin_metrics(row: dict, recon: ReconstructionProfile) -> list[Metric]:
+    """A scene's plug-in denoiser metrics: ``error_time/SCENE/plugin:SPEC/failed`` (zero), ``.../psnr_Nspp`` (psnr)."""
+    from reports.plugins import metric_name
+
+    points = pd.DataFrame(row["points"])
+    metrics = []
+    for spec, status in row.get("plugins", {}).items():
+        failed = status != "ok"
+        metrics.append(Metric(metric_name("error_time", row["scene"], spec, "failed"), "zero", int(failed),
+                              status if failed else "ran"))
+        at = points[(points["method"] == plugin_method(spec)) & (points["spp"] == recon.spp)]
+        if len(at) and math.isfinite(float(at["psnr"].iloc[0])):
+            metrics.append(Metric(metric_name("error_time", row["scene"], spec, f"psnr_{recon.spp}spp"), "psnr",
+                                  float(at["psnr"].iloc[0]),
+                                  f"dB, ours + plug-in at {recon.spp} spp vs Mitsuba {row['reference']['spp']} spp"))
     return metrics
 
 
