@@ -23,6 +23,7 @@ import numpy as np
 import pytest
 
 from kdtrace.plugins import ACCELERATOR_GROUP, CheckedDenoiser, PluginError, load_denoiser, resolve_factory
+from reports.plugins import parse_specs
 
 #: Prefix of a plug-in's intersector / method name in test ids, rows and extra_info.
 PLUGIN_PREFIX = "plugin:"
@@ -43,17 +44,6 @@ def plugin_spec(name: str) -> str:
     if not is_plugin(name):
         raise ValueError(f"{name!r} is not a plug-in name ({PLUGIN_PREFIX}SPEC)")
     return name[len(PLUGIN_PREFIX):]
-
-
-def parse_specs(values: Iterable[str] | None) -> list[str]:
-    """Specs from the repeated, comma-separated option values, in order, without repeats."""
-    specs: list[str] = []
-    for value in values or ():
-        for spec in value.split(","):
-            spec = spec.strip()
-            if spec and spec not in specs:
-                specs.append(spec)
-    return specs
 
 
 @dataclass

@@ -174,7 +174,7 @@ def fit_blend_weights(model: nn.Module, dataset, scene, spp_list: Sequence[int],
     BlendWeights
     """
     from kdtrace.render import render
-    from kdtrace.scene import Camera
+    from reconstruction.data import view_camera
     from reconstruction.evaluate import denoise_view
 
     spp_list = sorted({int(s) for s in spp_list})
@@ -196,7 +196,7 @@ def fit_blend_weights(model: nn.Module, dataset, scene, spp_list: Sequence[int],
         noisy, denoised, references = [], [], []
         for name, view in zip(names, views, strict=True):
             record = records[name]
-            camera = Camera(**{k: tuple(v) if isinstance(v, list) else v for k, v in record["camera"].items()})
+            camera = view_camera(record)
             frame = render(scene, spp=spp, max_depth=max_depth, seed=view_seed(seed, record["index"], spp),
                            width=camera.width, height=camera.height, aux=True, camera=camera)
             with torch.no_grad():

@@ -217,6 +217,11 @@ def candidate_views(scene: Scene, profile: ReconstructionProfile) -> list[ViewSp
     return views
 
 
+def view_camera(record: dict[str, Any]) -> Camera:
+    """The :class:`Camera` of a view record of a manifest (its JSON lists back to tuples)."""
+    return Camera(**{k: tuple(v) if isinstance(v, list) else v for k, v in record["camera"].items()})
+
+
 def dataset_key(scene: Scene, profile: ReconstructionProfile) -> str:
     """Content key of the dataset of ``scene`` under ``profile`` (scene, dataset settings, recipe)."""
     settings = {name: getattr(profile, name) for name in DATASET_FIELDS}

@@ -67,6 +67,14 @@ PROFILE_FIELDS = ("agreement_rays_per_kind", "timing_rays", "frame_width", "fram
 TEXT_COLUMNS = ("agreement_table", "agreement_counts", "warnings")
 
 
+
+def agreement_fields(agreement) -> dict:
+    """A Table 1 row's agreement columns from a :func:`check_scene` table: ray count, unexplained,
+    wrong and ours-exact totals, the formatted table and its records."""
+    return {"agreement_rays": int(agreement["rays"].sum()), "unexplained": int(agreement[UNEXPLAINED].sum()),
+            "wrong": int(agreement[WRONG].sum()), "ours_exact": int(agreement[OURS_EXACT].sum()),
+            "agreement_table": format_table(agreement), "agreement_counts": agreement.to_dict("records")}
+
 def interleaved_seconds(intersectors: dict, origins: np.ndarray, directions: np.ndarray,
                         rounds: int = TIMING_ROUNDS) -> dict[str, list[float]]:
     """Seconds of ``intersect`` per intersector and round, the intersectors taking turns.
@@ -172,12 +180,7 @@ def scene_row(name: str, config: Config, profile_name: str, progress: tqdm) -> d
 
     progress.set_postfix_str(f"{name}: Embree agreement")
     agreement = check_scene(scene, trees, profile.agreement_rays_per_kind, profile.seed, progress=False)
-    row["agreement_rays"] = int(agreement["rays"].sum())
-    row["unexplained"] = int(agreement[UNEXPLAINED].sum())
-    row["wrong"] = int(agreement[WRONG].sum())
-    row["ours_exact"] = int(agreement[OURS_EXACT].sum())
-    row["agreement_table"] = format_table(agreement)
-    row["agreement_counts"] = agreement.to_dict("records")
+    row.update(agreement_fields(agreement))
     row["warnings"] = sorted({str(w.message) for w in caught})
     return row
 
@@ -291,12 +294,7 @@ def plugin_row(name: str, spec: str, config: Config, profile_name: str, progress
             row[f"{kind}_plugin_over_embree"] = paired_speedup(seconds["embree"], seconds["plugin"])
         progress.set_postfix_str(f"{name}: plug-in {spec}: Embree agreement")
         agreement = check_scene(scene, {spec: accelerator}, profile.agreement_rays_per_kind, profile.seed, progress=False)
-        row["agreement_rays"] = int(agreement["rays"].sum())
-        row["unexplained"] = int(agreement[UNEXPLAINED].sum())
-        row["wrong"] = int(agreement[WRONG].sum())
-        row["ours_exact"] = int(agreement[OURS_EXACT].sum())
-        row["agreement_table"] = format_table(agreement)
-        row["agreement_counts"] = agreement.to_dict("records")
+        row.update(agreement_fields(agreement))
     except PluginError as error:
         row["failed"] = failure(error)
     row["warnings"] = sorted({str(w.message) for w in caught})

@@ -145,9 +145,9 @@ def test_denoiser_blended_with_its_input_is_not_below_the_input_at_any_sweep_spp
     :mod:`reconstruction.blend` must not, and must keep most of the network's gain at 4 spp.
     """
     from kdtrace.render import render
-    from kdtrace.scene import Camera
     from kdtrace.scenes import load_scene
     from reconstruction.blend import fit_blend_weights, view_seed
+    from reconstruction.data import view_camera
 
     model, dataset, scene = trained["denoiser"].model, trained["dataset"], load_scene(SCENE)
     weights = fit_blend_weights(model, dataset, scene, SWEEP_SPP, PROFILE.max_depth, PROFILE.seed)
@@ -160,7 +160,7 @@ def test_denoiser_blended_with_its_input_is_not_below_the_input_at_any_sweep_spp
         references = []
         for name in dataset.views("test"):
             record = records[name]
-            camera = Camera(**{k: tuple(v) if isinstance(v, list) else v for k, v in record["camera"].items()})
+            camera = view_camera(record)
             # the test seed stream differs from the validation fit's (another split, another index)
             frame = render(scene, spp=spp, max_depth=PROFILE.max_depth, seed=view_seed(PROFILE.seed + 1, record["index"], spp),
                            width=camera.width, height=camera.height, aux=True, camera=camera)
