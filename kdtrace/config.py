@@ -111,6 +111,10 @@ class ProfileConfig:
     far_unseen_scene : str
         A second never-seen scene far from the training scenes ("" for none), so Table 3
         shows how the mixed model degrades from near to far.
+    variant_scenes : tuple of str
+        Reconstruction scenes that also get the documented normal + depth variant of the
+        per-scene denoiser (auxiliary albedo, normal and depth; Table 2), measured on the same
+        test views. Empty for none: each costs one more per-scene training.
     sweep_spp : tuple of int
         Samples per pixel of the run-time-against-error sweep (our path tracer and Mitsuba).
     sweep_width, sweep_height : int
@@ -134,6 +138,7 @@ class ProfileConfig:
     reconstruction_scenes: tuple[str, ...] = ()
     unseen_scene: str = ""
     far_unseen_scene: str = ""
+    variant_scenes: tuple[str, ...] = ()
     sweep_spp: tuple[int, ...] = (1, 2, 4, 8, 16, 32)
     sweep_width: int = 128
     sweep_height: int = 128
@@ -143,7 +148,7 @@ class ProfileConfig:
     combined_reference_spp: int = 256
 
     def __post_init__(self) -> None:
-        for name in ("scenes", "reconstruction_scenes", "sweep_spp"):
+        for name in ("scenes", "reconstruction_scenes", "variant_scenes", "sweep_spp"):
             object.__setattr__(self, name, tuple(getattr(self, name)))
         if min(self.agreement_rays_per_kind, self.timing_rays, self.frame_width, self.frame_height, self.frame_spp,
                self.sweep_width, self.sweep_height, self.sweep_reference_spp, self.combined_reference_spp,
@@ -154,6 +159,9 @@ class ProfileConfig:
         if self.far_unseen_scene and self.far_unseen_scene in (*self.reconstruction_scenes, self.unseen_scene):
             raise ValueError(f"profile far_unseen_scene {self.far_unseen_scene!r} must not be a reconstruction "
                              "scene or the unseen_scene")
+        if set(self.variant_scenes) - set(self.reconstruction_scenes):
+            raise ValueError(f"profile variant_scenes {sorted(set(self.variant_scenes) - set(self.reconstruction_scenes))} "
+                             "are not among reconstruction_scenes")
         if self.unseen_scene and self.unseen_scene in self.reconstruction_scenes:
             raise ValueError(f"profile unseen_scene {self.unseen_scene!r} must not be one of reconstruction_scenes")
 

@@ -58,6 +58,10 @@ from reports.metrics import Metric, write_metrics
 from reports.notes import ReportNote
 from reports.paper_figures import TABLE2, TABLE3, TABLE5, TABLE6
 
+#: Auxiliary buffers of the documented normal + depth variant of the denoiser (Table 2):
+#: the paper's network with 10 input channels instead of 6 (its parameter count is reported).
+VARIANT_AUXILIARY = ("albedo", "normal", "depth")
+
 #: Output stems, each written as ``.md`` and ``.csv``.
 TABLES = ("table2", "table3", "table5", "table6", "quality")
 
@@ -189,7 +193,8 @@ def _measure(config: Config, profile_name: str, fresh: bool, progress: bool,
     far = profile.far_unseen_scene
     started = time.time() - 1.0  # file times have coarse resolution on some systems
     stages: list[Stage] = []
-    steps = len(scenes) + bool(unseen) + bool(far) + len(scenes) + 2 + 2 * len(scenes) + 1
+    variants = list(profile.variant_scenes)
+    steps = len(scenes) + bool(unseen) + bool(far) + len(scenes) + len(variants) + 2 + 2 * len(scenes) + 1
     bar = tqdm(total=steps, unit="step", desc=f"reconstruction ({profile_name})", disable=not progress)
 
     def step(label: str) -> None:
@@ -206,6 +211,13 @@ def _measure(config: Config, profile_name: str, fresh: bool, progress: bool,
         step(f"denoiser {name}")
         models[name] = _run_stage(stages, f"denoiser {name}", started,
                                   lambda name=name: train_denoiser([name], recon, progress=False), _model_made)
+        bar.update()
+    variant_models = {}
+    for name in variants:
+        step(f"normal+depth denoiser {name}")
+        variant_models[name] = _run_stage(
+            stages, f"normal+depth denoiser {name}", started,
+            lambda name=name: train_denoiser([name], recon, auxiliary=VARIANT_AUXILIARY, progress=False), _model_made)
         bar.update()
     step("mixed denoiser")
     mixed = _run_stage(stages, "mixed denoiser", started, lambda: train_denoiser(scenes, recon.mixed, progress=False),
@@ -229,6 +241,10 @@ def _measure(config: Config, profile_name: str, fresh: bool, progress: bool,
             "superres": evaluate.superres_quality(superres.model, dataset, "test", recon.superres_downsample),
             "reference_noise": reference_noise(dataset, "test", recon.spp, recon.reference_spp),
         }
+        if name in variant_models:
+            quality[name]["normal_depth"] = {
+                split: evaluate.denoiser_quality(variant_models[name].model, dataset, split, VARIANT_AUXILIARY,
+                                                 with_oidn=False)["ours"] for split in ("train", "validation", "test")}
         bar.update()
     unseen_quality = {}
     for role, name in (("unseen", unseen), ("far", far)):
@@ -275,12 +291,17 @@ def _measure(config: Config, profile_name: str, fresh: bool, progress: bool,
         "unseen": unseen, "frame": [profile.frame_width, profile.frame_height], "frame_spp": profile.frame_spp,
         "stages": [dataclasses.asdict(s) for s in stages],
         "best_epochs": {**{name: models[name].best_epoch for name in scenes}, "mixed": mixed.best_epoch,
+                        **{f"{name} normal+depth": variant_models[name].best_epoch for name in variants},
                         "superres": superres.best_epoch},
         "epochs": recon.epochs,
-        "parameters": {"denoiser": parameter_count(mixed.model), "superres": parameter_count(superres.model)},
+        "parameters": {"denoiser": parameter_count(mixed.model), "superres": parameter_count(superres.model),
+                       **({"normal_depth_denoiser": parameter_count(next(iter(variant_models.values())).model)}
+                          if variant_models else {})},
+        "variant_scenes": variants,
         "quality": quality, "unseen_quality": unseen_quality.get("unseen"), "photos": photos, "timing": timing,
         "far": far, "far_quality": unseen_quality.get("far"),
         "histories": {**{name: models[name].history for name in scenes}, "mixed": mixed.history,
+                      **{f"{name} normal+depth": variant_models[name].history for name in variants},
                       "superres": superres.history},
     }, {"datasets": datasets, "models": {name: models[name].model for name in scenes}, "mixed": mixed.model,
         "superres": superres.model}
@@ -324,6 +345,16 @@ def _table2(m: dict) -> list[dict]:
                          "paper_test_psnr": paper.get("test_psnr") if model == "ours" else None,
                          "paper_test_rmse": paper.get("test_rmse") if model == "ours" else None,
                          "model_source": _reused(m["stages"], f"denoiser {name}" if model == "ours" else "mixed denoiser")})
+        if "normal_depth" in q:
+            variant, test = q["normal_depth"], q["ours"]["test"]
+            oidn = test.get("oidn", {}).get("psnr")
+            rows.append({"scene": name, "model": "per-scene +normal+depth", "train_psnr": variant["train"]["psnr"],
+                         "validation_psnr": variant["validation"]["psnr"], "test_psnr": variant["test"]["psnr"],
+                         "test_rmse": variant["test"]["rmse"], "noisy_test_psnr": test["noisy"]["psnr"],
+                         "gain_over_noisy": variant["test"]["psnr"] - test["noisy"]["psnr"], "oidn_test_psnr": oidn,
+                         "minus_oidn": None if oidn is None else variant["test"]["psnr"] - oidn,
+                         "test_views": q["views"]["test"],
+                         "model_source": _reused(m["stages"], f"normal+depth denoiser {name}")})
     from reconstruction.evaluate import combine
 
     pooled = {split: combine([m["quality"][n]["mixed"][split] for n in m["scenes"]]) for split in ("train", "validation", "test")}
@@ -482,7 +513,10 @@ _TITLES = {
     "table2": ("Table 2 — denoiser quality per scene (per-scene and mixed models)",
                "PSNR (dB) and RMSE pooled over whole views of each split, linear images clipped to [0, 1]. "
                "`all scenes`: pooled over every scene's views (the paper's Mixed row is the mixed model on its own "
-               "test set). Paper figures beside ours where the paper has the scene."),
+               "test set). Paper figures beside ours where the paper has the scene. `per-scene +normal+depth` "
+               "(profile `variant_scenes`): the documented variant fed albedo, normal and depth ({variant_parameters} "
+               "parameters against the paper network's {parameters}), trained and measured like the per-scene model "
+               "on the same views."),
     "table3": ("Table 3 — the mixed model on each scene and on a scene it never saw",
                "`psnr_difference` = per-scene model minus mixed model on the same test views (positive: the "
                "per-scene model is better, as in the paper). The unseen scene is measured on all its views, none "
@@ -506,7 +540,9 @@ _TITLES = {
 
 def _header(stem: str, m: dict, provenance: dict, reconstruction: Any) -> str:
     title, note = _TITLES[stem]
-    note = note.format(downsample=reconstruction.superres_downsample, spp=m["frame_spp"])
+    note = note.format(downsample=reconstruction.superres_downsample, spp=m["frame_spp"],
+                       parameters=m["parameters"]["denoiser"],
+                       variant_parameters=m["parameters"].get("normal_depth_denoiser", "no"))
     machine = provenance["machine"]
     reused = [s for s in m["stages"] if s["reused"]]
     made = [s for s in m["stages"] if not s["reused"]]
@@ -593,6 +629,9 @@ def metrics_of(m: dict) -> list[Metric]:
                        "mixed denoiser, this scene's test views, dB"),
                 Metric(f"table5/{name}/ours_test_psnr", "psnr", q["superres"]["ours"]["psnr"],
                        "superresolution 2x, test views, dB")]
+        if "normal_depth" in q:
+            out.append(Metric(f"table2/{name}/normal_depth_test_psnr", "psnr", q["normal_depth"]["test"]["psnr"],
+                              "per-scene normal + depth variant, test views, dB"))
         t = m["timing"][name]
         out += [Metric(f"table6/{name}/oidn_over_ours_seconds", "ratio", t["denoise"]["oidn_over_ours"],
                        f"OIDN seconds / ours ({t['denoise_option']}), same frame"),

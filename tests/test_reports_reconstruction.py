@@ -14,6 +14,7 @@ import json
 import math
 import time
 
+import numpy as np
 import pandas as pd
 import pytest
 
@@ -116,6 +117,7 @@ frame_height = 32
 reconstruction_profile = "tiny"
 reconstruction_scenes = ["cbox-original", "cbox-sphere"]
 unseen_scene = "cbox-empty"
+variant_scenes = ["cbox-original"]
 
 [reconstruction.profiles.tiny]
 positions = 1
@@ -150,7 +152,16 @@ def test_generate_end_to_end_and_reuse(tmp_path, monkeypatch, shared_scenes):
     again = rt.generate(config, "tiny", tmp_path / "out", progress=False)
     second = time.perf_counter() - started
     print(f"\n[tiny] first run {first:.1f} s, rerun {second:.1f} s")
-    assert "Reused from the cache: 7 of 7 datasets and models." in (tmp_path / "out" / "table2.md").read_text()
+    table2 = (tmp_path / "out" / "table2.md").read_text()
+    assert "Reused from the cache: 8 of 8 datasets and models." in table2
+    variant = pd.read_csv(tmp_path / "out" / "table2.csv").set_index(["scene", "model"]).loc[
+        ("cbox-original", "per-scene +normal+depth")]
+    assert np.isfinite(variant["test_psnr"]) and variant["noisy_test_psnr"] > 0
+    from reconstruction.models import Denoiser
+    from reconstruction.train import parameter_count
+
+    wider = parameter_count(Denoiser(rt.VARIANT_AUXILIARY))
+    assert wider > 95107 and f"({wider} parameters against the paper network's 95107)" in table2
     assert second < first
     psnrs = {m.name: m.value for m in metrics if m.kind == "psnr"}
     assert psnrs == {m.name: m.value for m in again if m.kind == "psnr"}  # same cached models, same numbers
