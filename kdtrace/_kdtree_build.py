@@ -171,36 +171,18 @@ def build_naive(v0, v1, v2, triangle_ids, root_min, root_max, k_t, k_i, min_leaf
     -------
     node_meta, node_split, node_start, node_count, refs, node_area, max_depth_reached
     """
-    capacity = 1024
-    node_meta = np.empty(capacity, np.int32)
-    node_split = np.zeros(capacity, np.float32)
-    node_start = np.zeros(capacity, np.int32)
-    node_count = np.zeros(capacity, np.int32)
-    node_area = np.zeros(capacity, np.float64)
+    meta, split, start_of, count_of, area_of = _grow_nodes(np.empty(0, np.int32), np.empty(0, np.float32),
+                                                          np.empty(0, np.int32), np.empty(0, np.int32),
+                                                          np.empty(0), 1024)
     n_nodes = 1
-
-    ref_capacity = max(16, 4 * triangle_ids.shape[0])
-    refs = np.empty(ref_capacity, np.int32)
+    refs = np.empty(max(16, 4 * triangle_ids.shape[0]), np.int32)
     n_refs = 0
 
     # Working buffer of triangle lists; children are appended above their parent's
     # slice and the buffer top is reset to the popped node's end (LIFO discipline).
     work = np.empty(max(16, 3 * triangle_ids.shape[0]), np.int32)
     work[: triangle_ids.shape[0]] = triangle_ids
-
-    stack_depth_cap = max_depth + 4
-    st_node = np.empty(stack_depth_cap, np.int64)
-    st_depth = np.empty(stack_depth_cap, np.int64)
-    st_start = np.empty(stack_depth_cap, np.int64)
-    st_end = np.empty(stack_depth_cap, np.int64)
-    st_bounds = np.empty((stack_depth_cap, 6), np.float64)
-    sp = 0
-    st_node[0] = 0
-    st_depth[0] = 0
-    st_start[0] = 0
-    st_end[0] = triangle_ids.shape[0]
-    st_bounds[0, :3] = root_min
-    st_bounds[0, 3:] = root_max
+    st_node, st_depth, st_start, st_end, st_bounds = _build_stack(max_depth, triangle_ids.shape[0], root_min, root_max)
     sp = 1
 
     poly_a = np.empty((12, 3))
@@ -211,15 +193,12 @@ def build_naive(v0, v1, v2, triangle_ids, root_min, root_max, k_t, k_i, min_leaf
 
     while sp > 0:
         sp -= 1
-        node = st_node[sp]
-        depth = st_depth[sp]
-        start = st_start[sp]
-        end = st_end[sp]
+        node, depth, start, end = st_node[sp], st_depth[sp], st_start[sp], st_end[sp]
         bmin[:] = st_bounds[sp, :3]
         bmax[:] = st_bounds[sp, 3:]
         depth_reached = max(depth_reached, depth)
         area = _surface_area(bmin, bmax)
-        node_area[node] = area
+        area_of[node] = area
 
         # Bounds of every triangle within this node's box (clipped: exact; else its bbox).
         n_in = end - start
@@ -245,9 +224,7 @@ def build_naive(v0, v1, v2, triangle_ids, root_min, root_max, k_t, k_i, min_leaf
         best_pos = 0.0
         if n > min_leaf and depth < max_depth and area > 0.0:
             for axis in range(3):
-                if cycle_axes and axis != depth % 3:
-                    continue
-                if bmax[axis] <= bmin[axis]:
+                if (cycle_axes and axis != depth % 3) or bmax[axis] <= bmin[axis]:
                     continue
                 lo = np.sort(tri_min[:n, axis])
                 hi = np.sort(tri_max[:n, axis])
@@ -258,100 +235,259 @@ def build_naive(v0, v1, v2, triangle_ids, root_min, root_max, k_t, k_i, min_leaf
                     best_cost = cost
                     best_axis = axis
                     best_pos = pos
-        if best_axis >= 0:
-            # Store the plane exactly as the traversal will see it (float32).
-            best_pos = np.float64(np.float32(best_pos))
-            if not (bmin[best_axis] < best_pos < bmax[best_axis]):
-                best_axis = -1
+        best_axis, best_pos = _representable_split(best_axis, best_pos, bmin, bmax)
         # Paper's Terminate(V): leaf when the best split costs more than intersecting all.
         if best_axis < 0 or best_cost > k_i * n:
-            if n_refs + n > ref_capacity:
-                ref_capacity = max(2 * ref_capacity, n_refs + n)
-                grown = np.empty(ref_capacity, np.int32)
-                grown[:n_refs] = refs[:n_refs]
-                refs = grown
-            node_meta[node] = LEAF
-            node_start[node] = n_refs
-            node_count[node] = n
-            refs[n_refs : n_refs + n] = np.sort(work[start:end])
-            n_refs += n
+            refs, n_refs = _write_leaf(meta, start_of, count_of, node, refs, n_refs, work[start:end])
             continue
 
         # Interior node: allocate both children next to each other.
-        if n_nodes + 2 > capacity:
-            capacity *= 2
-            node_meta = _grow_i32(node_meta, capacity)
-            node_start = _grow_i32(node_start, capacity)
-            node_count = _grow_i32(node_count, capacity)
-            grown_split = np.zeros(capacity, np.float32)
-            grown_split[:n_nodes] = node_split[:n_nodes]
-            node_split = grown_split
-            grown_area = np.zeros(capacity, np.float64)
-            grown_area[:n_nodes] = node_area[:n_nodes]
-            node_area = grown_area
+        if n_nodes + 2 > meta.shape[0]:
+            meta, split, start_of, count_of, area_of = _grow_nodes(meta, split, start_of, count_of, area_of,
+                                                                  2 * meta.shape[0])
         left = n_nodes
         n_nodes += 2
-        node_meta[node] = (left << 2) | best_axis
-        node_split[node] = np.float32(best_pos)
-        node_start[node] = 0
-        node_count[node] = 0
+        _make_interior(meta, split, start_of, count_of, node, left, best_axis, best_pos)
 
         # Partition: right list first (it is processed last), then the left list above it.
+        # Clipped bounds decide (perfect splits); on the unclipped path they decide as the
+        # raw ones would, the split lying inside the box.
         n_right = 0
         n_left = 0
         for k in range(n):
-            lo_k = tri_min[k, best_axis]
-            hi_k = tri_max[k, best_axis]
-            planar_here = lo_k == best_pos and hi_k == best_pos
-            if hi_k > best_pos or planar_here:
-                n_right += 1
-            if lo_k < best_pos or planar_here:
-                n_left += 1
-        needed = end + n_right + n_left
-        if needed > work.shape[0]:
-            grown_work = np.empty(max(2 * work.shape[0], needed), np.int32)
-            grown_work[:end] = work[:end]
-            work = grown_work
+            goes_right, goes_left = _sides(tri_min[k, best_axis], tri_max[k, best_axis], best_pos)
+            n_right += goes_right
+            n_left += goes_left
+        work = _ensure_capacity(work, end + n_right + n_left)
         write_right = end
         write_left = end + n_right
         for k in range(n):
             t = work[start + k]
-            lo_k = tri_min[k, best_axis]
-            hi_k = tri_max[k, best_axis]
-            planar_here = lo_k == best_pos and hi_k == best_pos
-            if hi_k > best_pos or planar_here:
+            goes_right, goes_left = _sides(tri_min[k, best_axis], tri_max[k, best_axis], best_pos)
+            if goes_right:
                 work[write_right] = t
                 write_right += 1
-            if lo_k < best_pos or planar_here:
+            if goes_left:
                 work[write_left] = t
                 write_left += 1
-        # Push right (bottom) then left (top).
-        st_node[sp] = left + 1
-        st_depth[sp] = depth + 1
-        st_start[sp] = end
-        st_end[sp] = end + n_right
-        st_bounds[sp, :3] = bmin
-        st_bounds[sp, 3:] = bmax
-        st_bounds[sp, best_axis] = best_pos
-        sp += 1
-        st_node[sp] = left
-        st_depth[sp] = depth + 1
-        st_start[sp] = end + n_right
-        st_end[sp] = end + n_right + n_left
-        st_bounds[sp, :3] = bmin
-        st_bounds[sp, 3:] = bmax
-        st_bounds[sp, 3 + best_axis] = best_pos
-        sp += 1
+        sp = _push_children(st_node, st_depth, st_start, st_end, st_bounds, sp, left, depth + 1, best_axis, best_pos,
+                            bmin, bmax, end, end + n_right, end + n_right + n_left)
 
-    return (
-        node_meta[:n_nodes].copy(),
-        node_split[:n_nodes].copy(),
-        node_start[:n_nodes].copy(),
-        node_count[:n_nodes].copy(),
-        refs[:n_refs].copy(),
-        node_area[:n_nodes].copy(),
-        depth_reached,
-    )
+    return (meta[:n_nodes].copy(), split[:n_nodes].copy(), start_of[:n_nodes].copy(), count_of[:n_nodes].copy(),
+            refs[:n_refs].copy(), area_of[:n_nodes].copy(), depth_reached)
+
+
+@njit(cache=True)
+def build_presorted(v0, v1, v2, triangle_ids, root_min, root_max, k_t, k_i, min_leaf, max_depth, cycle_axes, empty_bonus):
+    """:func:`build_naive` with ``clip=False`` in O(N log N): the same tree, sorted once.
+
+    :func:`build_naive` sorts every node's triangle bounds along each axis, O(n log n) per
+    node and O(N log^2 N) in all. Here the root's triangles are sorted once per axis, by
+    their lower and by their upper bound (six lists), and every child inherits its lists by
+    a stable partition of its parent's (Wald & Havran 2006). Clipping a bound to a child's
+    box is monotone, so an inherited list stays sorted by the child's clipped bounds, and
+    the sweep sees exactly the values :func:`build_naive` sorts: same splits, same tree
+    (tests/test_kdtree.py compares the two). Perfect splits (``clip=True``) change a
+    triangle's bounds along every axis, so they stay with :func:`build_naive`.
+
+    Parameters and returns as :func:`build_naive` (without ``clip``).
+    """
+    n_tris = v0.shape[0]
+    raw_lo = np.empty((n_tris, 3))
+    raw_hi = np.empty((n_tris, 3))
+    for t in range(n_tris):
+        for k in range(3):
+            raw_lo[t, k] = min(v0[t, k], v1[t, k], v2[t, k])
+            raw_hi[t, k] = max(v0[t, k], v1[t, k], v2[t, k])
+    m = triangle_ids.shape[0]
+    meta, split, start_of, count_of, area_of = _grow_nodes(np.empty(0, np.int32), np.empty(0, np.float32),
+                                                          np.empty(0, np.int32), np.empty(0, np.int32),
+                                                          np.empty(0), 1024)
+    n_nodes = 1
+    refs = np.empty(max(16, 4 * m), np.int32)
+    n_refs = 0
+    # A node's six lists lie back to back in ``work``: list 2 * axis holds its triangles by
+    # lower bound along ``axis``, list 2 * axis + 1 by upper bound. Children are appended
+    # above their parent and the top is reset to the popped node's start (LIFO).
+    work = np.empty(max(96, 18 * m), np.int32)
+    for axis in range(3):
+        work[2 * axis * m:(2 * axis + 1) * m] = triangle_ids[np.argsort(raw_lo[triangle_ids, axis])]
+        work[(2 * axis + 1) * m:(2 * axis + 2) * m] = triangle_ids[np.argsort(raw_hi[triangle_ids, axis])]
+    st_node, st_depth, st_start, st_end, st_bounds = _build_stack(max_depth, 6 * m, root_min, root_max)
+    sp = 1
+    bmin = np.empty(3)
+    bmax = np.empty(3)
+    lo = np.empty(m)
+    hi = np.empty(m)
+    planar = np.empty(m)
+    depth_reached = 0
+    while sp > 0:
+        sp -= 1
+        node, depth, start, end = st_node[sp], st_depth[sp], st_start[sp], st_end[sp]
+        bmin[:] = st_bounds[sp, :3]
+        bmax[:] = st_bounds[sp, 3:]
+        n = (end - start) // 6
+        depth_reached = max(depth_reached, depth)
+        area = _surface_area(bmin, bmax)
+        area_of[node] = area
+        best_cost = np.inf
+        best_axis = -1
+        best_pos = 0.0
+        if n > min_leaf and depth < max_depth and area > 0.0:
+            for axis in range(3):
+                if (cycle_axes and axis != depth % 3) or bmax[axis] <= bmin[axis]:
+                    continue
+                by_lo = start + 2 * axis * n
+                by_hi = by_lo + n
+                n_planar = 0
+                for i in range(n):
+                    t = work[by_lo + i]
+                    lo[i] = max(bmin[axis], raw_lo[t, axis])
+                    if lo[i] == min(bmax[axis], raw_hi[t, axis]):
+                        planar[n_planar] = lo[i]
+                        n_planar += 1
+                    hi[i] = min(bmax[axis], raw_hi[work[by_hi + i], axis])
+                cost, pos = _best_split_on_axis(lo[:n], hi[:n], planar[:n_planar], n, bmin, bmax, axis, area,
+                                                k_t, k_i, empty_bonus)
+                if cost < best_cost:
+                    best_cost = cost
+                    best_axis = axis
+                    best_pos = pos
+        best_axis, best_pos = _representable_split(best_axis, best_pos, bmin, bmax)
+        if best_axis < 0 or best_cost > k_i * n:
+            refs, n_refs = _write_leaf(meta, start_of, count_of, node, refs, n_refs, work[start:start + n])
+            continue
+        if n_nodes + 2 > meta.shape[0]:
+            meta, split, start_of, count_of, area_of = _grow_nodes(meta, split, start_of, count_of, area_of,
+                                                                  2 * meta.shape[0])
+        left = n_nodes
+        n_nodes += 2
+        _make_interior(meta, split, start_of, count_of, node, left, best_axis, best_pos)
+        # Stable partition of each list: the right child's lists first (processed last).
+        n_right = 0
+        n_left = 0
+        for i in range(start, start + n):
+            goes_right, goes_left = _sides(raw_lo[work[i], best_axis], raw_hi[work[i], best_axis], best_pos)
+            n_right += goes_right
+            n_left += goes_left
+        work = _ensure_capacity(work, end + 6 * (n_right + n_left))
+        right_start = end
+        left_start = end + 6 * n_right
+        for list_index in range(6):
+            write_right = right_start + list_index * n_right
+            write_left = left_start + list_index * n_left
+            for i in range(start + list_index * n, start + (list_index + 1) * n):
+                t = work[i]
+                goes_right, goes_left = _sides(raw_lo[t, best_axis], raw_hi[t, best_axis], best_pos)
+                if goes_right:
+                    work[write_right] = t
+                    write_right += 1
+                if goes_left:
+                    work[write_left] = t
+                    write_left += 1
+        sp = _push_children(st_node, st_depth, st_start, st_end, st_bounds, sp, left, depth + 1, best_axis, best_pos,
+                            bmin, bmax, right_start, left_start, left_start + 6 * n_left)
+    return (meta[:n_nodes].copy(), split[:n_nodes].copy(), start_of[:n_nodes].copy(), count_of[:n_nodes].copy(),
+            refs[:n_refs].copy(), area_of[:n_nodes].copy(), depth_reached)
+
+
+@njit(cache=True, inline="always")
+def _sides(lo, hi, pos):
+    """(goes right, goes left) of a triangle with unclipped bounds [lo, hi] along the split axis.
+
+    Either side its bounds reach; one lying in the plane goes to both.
+    """
+    planar_here = lo == pos and hi == pos
+    return hi > pos or planar_here, lo < pos or planar_here
+
+
+@njit(cache=True)
+def _representable_split(axis, pos, bmin, bmax):
+    """The split stored exactly as traversal sees it (float32); axis -1 if it leaves the open box."""
+    if axis < 0:
+        return axis, pos
+    pos = np.float64(np.float32(pos))
+    if not (bmin[axis] < pos < bmax[axis]):
+        return -1, pos
+    return axis, pos
+
+
+@njit(cache=True)
+def _ensure_capacity(work, needed):
+    """``work`` itself, or a copy at least twice as large when ``needed`` entries do not fit."""
+    if needed <= work.shape[0]:
+        return work
+    grown = np.empty(max(2 * work.shape[0], needed), work.dtype)
+    grown[: work.shape[0]] = work
+    return grown
+
+
+@njit(cache=True)
+def _write_leaf(meta, start_of, count_of, node, refs, n_refs, triangles):
+    """Make ``node`` a leaf of ``triangles`` (stored sorted); returns (refs, n_refs)."""
+    n = triangles.shape[0]
+    refs = _ensure_capacity(refs, n_refs + n)
+    meta[node] = LEAF
+    start_of[node] = n_refs
+    count_of[node] = n
+    refs[n_refs:n_refs + n] = np.sort(triangles)
+    return refs, n_refs + n
+
+
+@njit(cache=True)
+def _grow_nodes(meta, split, start_of, count_of, area_of, capacity):
+    """Node arrays with room for ``capacity`` nodes, the existing ones copied."""
+    used = meta.shape[0]
+    grown_split = np.zeros(capacity, np.float32)
+    grown_split[:used] = split
+    grown_area = np.zeros(capacity)
+    grown_area[:used] = area_of
+    return (_grow_i32(meta, capacity), grown_split, _grow_i32(start_of, capacity), _grow_i32(count_of, capacity),
+            grown_area)
+
+
+@njit(cache=True)
+def _make_interior(meta, split, start_of, count_of, node, left, axis, pos):
+    """Make ``node`` an interior node split at ``pos`` along ``axis``, children ``left`` and ``left + 1``."""
+    meta[node] = (left << 2) | axis
+    split[node] = np.float32(pos)
+    start_of[node] = 0
+    count_of[node] = 0
+
+
+@njit(cache=True)
+def _build_stack(max_depth, root_end, root_min, root_max):
+    """The build's node stack (node, depth, work start, work end, bounds), holding the root."""
+    cap = max_depth + 4
+    st_node = np.empty(cap, np.int64)
+    st_depth = np.empty(cap, np.int64)
+    st_start = np.empty(cap, np.int64)
+    st_end = np.empty(cap, np.int64)
+    st_bounds = np.empty((cap, 6))
+    st_node[0] = 0
+    st_depth[0] = 0
+    st_start[0] = 0
+    st_end[0] = root_end
+    st_bounds[0, :3] = root_min
+    st_bounds[0, 3:] = root_max
+    return st_node, st_depth, st_start, st_end, st_bounds
+
+
+@njit(cache=True)
+def _push_children(st_node, st_depth, st_start, st_end, st_bounds, sp, left, depth, axis, pos, bmin, bmax,
+                   right_start, left_start, left_end):
+    """Push the right child (work ``[right_start, left_start)``) then the left one; returns sp."""
+    for child, lo_end, hi_end, bound in ((left + 1, right_start, left_start, axis),
+                                         (left, left_start, left_end, 3 + axis)):
+        st_node[sp] = child
+        st_depth[sp] = depth
+        st_start[sp] = lo_end
+        st_end[sp] = hi_end
+        st_bounds[sp, :3] = bmin
+        st_bounds[sp, 3:] = bmax
+        st_bounds[sp, bound] = pos
+        sp += 1
+    return sp
 
 
 @njit(cache=True)

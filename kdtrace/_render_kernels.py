@@ -34,7 +34,7 @@ import math
 import numpy as np
 from numba import literally, njit, prange
 
-from kdtrace._kdtree_traverse import STACK_SIZE, trace_ray
+from kdtrace._kdtree_traverse import RAY_SCRATCH, STACK_SIZE, trace_ray
 
 KIND_DIFFUSE = 0
 KIND_MIRROR = 1
@@ -243,7 +243,7 @@ def path_sample(
     nodes, splits, refs, box, corners, watertight, tri_mat, tri_normals, tri_uv,
     mat_kind, mat_albedo, mat_emission, mat_ior, mat_tex, tex_pixels, tex_info,
     emit_tri, emit_cdf, tri_emit_pdf, sky_rgb,
-    ox, oy, oz, dx, dy, dz, key, max_depth, rr_depth, st_node, st_ent, st_ext,
+    ox, oy, oz, dx, dy, dz, key, max_depth, rr_depth, st_node, st_ent, st_ext, ray,
 ):
     """One path from the camera ray (o, d), for the feature flags given first.
 
@@ -275,7 +275,7 @@ def path_sample(
     depth = 0
     while True:
         t, tri, u, v, _, _ = trace_ray(nodes, splits, refs, box, corners, ox, oy, oz, dx, dy, dz,
-                                       0.0, np.inf, False, watertight, st_node, st_ent, st_ext)
+                                       0.0, np.inf, False, watertight, st_node, st_ent, st_ext, ray)
         if depth > 0:
             n_bounce += 1
         if tri < 0:
@@ -349,7 +349,7 @@ def path_sample(
                         _, blocker, _, _, _, _ = trace_ray(
                             nodes, splits, refs, box, corners, sox, soy, soz,
                             hx / hdist, hy / hdist, hz / hdist, 0.0, hdist * (1.0 - SHADOW_EPSILON),
-                            True, watertight, st_node, st_ent, st_ext)
+                            True, watertight, st_node, st_ent, st_ext, ray)
                         if blocker < 0:
                             pdf_light = tri_emit_pdf[ltri] * dist * dist / cos_l
                             pdf_bsdf = cos_o * _INV_PI
@@ -433,6 +433,7 @@ def render_tiles(
         st_node = np.empty(STACK_SIZE, np.int32)
         st_ent = np.empty(STACK_SIZE, np.float64)
         st_ext = np.empty(STACK_SIZE, np.float64)
+        ray = np.empty(RAY_SCRATCH)
         ty0 = (tile // tiles_x) * tile_size
         tx0 = (tile % tiles_x) * tile_size
         n_shadow = 0
@@ -454,7 +455,7 @@ def render_tiles(
                         nodes, splits, refs, box, corners, watertight, tri_mat, tri_normals, tri_uv,
                         mat_kind, mat_albedo, mat_emission, mat_ior, mat_tex, tex_pixels, tex_info,
                         emit_tri, emit_cdf, tri_emit_pdf, sky_rgb,
-                        cam[0], cam[1], cam[2], dx, dy, dz, key, max_depth, rr_depth, st_node, st_ent, st_ext,
+                        cam[0], cam[1], cam[2], dx, dy, dz, key, max_depth, rr_depth, st_node, st_ent, st_ext, ray,
                     )
                     sum_l[0] += lr
                     sum_l[1] += lg

@@ -241,9 +241,8 @@ def _compile_build_kernels() -> None:
     v0 = np.array([[0.0, 0.0, 0.0], [2.0, 0.0, 0.0]])
     v1 = v0 + [1.0, 0.0, 0.0]
     v2 = v0 + [0.0, 1.0, 0.0]
-    for clip in (False, True):
-        arrays = build_kernels.build_naive(v0, v1, v2, np.arange(2, dtype=np.int32), v0.min(0), v2.max(0) + 1.0,
-                                           1.0, 1.0, 0, 4, False, 0.0, clip)
+    args = (v0, v1, v2, np.arange(2, dtype=np.int32), v0.min(0), v2.max(0) + 1.0, 1.0, 1.0, 0, 4, False, 0.0)
+    for arrays in (build_kernels.build_naive(*args, True), build_kernels.build_presorted(*args)):
         build_kernels.pull_up(arrays[0], arrays[2], arrays[3], arrays[4])
 
 
@@ -256,13 +255,17 @@ def _build_arrays(scene: Scene, variant: str, config: KDTreeConfig):
     lo, hi = scene.bounds
     _compile_build_kernels()
     started = time.perf_counter()
-    meta, split, start, count, refs, node_area, depth_reached = build_kernels.build_naive(
-        np.ascontiguousarray(corners[:, 0]), np.ascontiguousarray(corners[:, 1]),
-        np.ascontiguousarray(corners[:, 2]), triangle_ids, lo, hi,
-        config.traversal_cost, config.intersection_cost, config.min_leaf_size,
-        max_depth_for(len(triangle_ids), config), config.axis_selection == "cycle", config.empty_bonus,
-        config.clip_triangles,
-    )
+    args = (np.ascontiguousarray(corners[:, 0]), np.ascontiguousarray(corners[:, 1]),
+            np.ascontiguousarray(corners[:, 2]), triangle_ids, lo, hi,
+            config.traversal_cost, config.intersection_cost, config.min_leaf_size,
+            max_depth_for(len(triangle_ids), config), config.axis_selection == "cycle", config.empty_bonus)
+    # Bounding-box splits sort once (O(N log N)); perfect splits re-sort per node (the same
+    # tree either way for clip_triangles = false: tests/test_kdtree.py).
+    if config.clip_triangles:
+        built = build_kernels.build_naive(*args, True)
+    else:
+        built = build_kernels.build_presorted(*args)
+    meta, split, start, count, refs, node_area, depth_reached = built
     if variant == "local":
         start, count, refs = build_kernels.pull_up(meta, start, count, refs)
     seconds = time.perf_counter() - started

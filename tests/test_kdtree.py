@@ -96,6 +96,42 @@ def test_local_branch_is_the_naive_tree_with_pull_up(big_and_small_triangles):
     assert local.stats["triangle_references"] < naive.stats["triangle_references"]
 
 
+def _grid_with_planar_triangles() -> Scene:
+    """Axis-aligned quads on a coarse grid: many triangles lying in split planes, shared bounds."""
+    quads = []
+    for x in range(4):
+        for y in range(4):
+            quads.append([[x, y, 0], [x + 1, y, 0], [x + 1, y + 1, 0], [x, y, 0], [x + 1, y + 1, 0], [x, y + 1, 0]])
+            quads.append([[x, 0, y], [x + 1, 0, y], [x + 1, 0, y + 1], [x, 0, y], [x + 1, 0, y + 1], [x, 0, y + 1]])
+    vertices = np.array(quads, float).reshape(-1, 3)
+    return Scene("grid", vertices, np.arange(len(vertices)).reshape(-1, 3), np.zeros(len(vertices) // 3),
+                 [Material("grey")])
+
+
+@pytest.mark.parametrize("axis_selection", ["all", "cycle"])
+@pytest.mark.parametrize("scene_kind", ["soup", "mixed", "planar grid"])
+def test_presorted_build_is_the_per_node_sorting_build(scene_kind, axis_selection, big_and_small_triangles):
+    """The O(N log N) builder gives the O(N log^2 N) reference's tree, array for array."""
+    from kdtrace import _kdtree_build as kernels
+    from kdtrace.kdtree import max_depth_for
+
+    scene = {"soup": soup(3000, 7, 0.05), "mixed": big_and_small_triangles,
+             "planar grid": _grid_with_planar_triangles()}[scene_kind]
+    config = KDTreeConfig(axis_selection=axis_selection, min_leaf_size=1)
+    corners = scene.vertices.astype(np.float64)[scene.triangles]
+    ids = np.arange(len(scene.triangles), dtype=np.int32)
+    lo, hi = scene.bounds
+    args = (*(np.ascontiguousarray(corners[:, k]) for k in range(3)), ids, lo, hi, config.traversal_cost,
+            config.intersection_cost, config.min_leaf_size, max_depth_for(len(ids), config),
+            axis_selection == "cycle", config.empty_bonus)
+    reference = kernels.build_naive(*args, False)
+    fast = kernels.build_presorted(*args)
+    assert len(reference[0]) > 15  # a tree, not a single leaf
+    for expected, got in zip(reference[:6], fast[:6], strict=True):
+        np.testing.assert_array_equal(got, expected)
+    assert fast[6] == reference[6]
+
+
 @pytest.mark.parametrize("variant", VARIANTS)
 def test_statistics_are_consistent(variant, big_and_small_triangles):
     tree = build_kdtree(big_and_small_triangles, variant, cache=False)
