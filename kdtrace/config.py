@@ -111,6 +111,9 @@ class ProfileConfig:
     far_unseen_scene : str
         A second never-seen scene far from the training scenes ("" for none), so Table 3
         shows how the mixed model degrades from near to far.
+    build_scaling_scene : str
+        Scene whose nested triangle subsets time the KD-tree build against triangle count
+        (Table 1's build scaling, :mod:`reports.build_scaling`); "" for none.
     variant_scenes : tuple of str
         Reconstruction scenes that also get the documented normal + depth variant of the
         per-scene denoiser (auxiliary albedo, normal and depth; Table 2), measured on the same
@@ -138,6 +141,7 @@ class ProfileConfig:
     reconstruction_scenes: tuple[str, ...] = ()
     unseen_scene: str = ""
     far_unseen_scene: str = ""
+    build_scaling_scene: str = ""
     variant_scenes: tuple[str, ...] = ()
     sweep_spp: tuple[int, ...] = (1, 2, 4, 8, 16, 32)
     sweep_width: int = 128

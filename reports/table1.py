@@ -50,6 +50,7 @@ from kdtrace.render import render
 from kdtrace.scenes import load_scene
 from references.agreement import OURS_EXACT, UNEXPLAINED, WRONG, check_scene, format_table
 from references.embree import EmbreeIntersector
+from reports import build_scaling
 from reports.metrics import Metric, write_metrics
 from reports.notes import ReportNote
 from reports.paper_figures import TABLE1
@@ -494,12 +495,20 @@ def generate(config: Config, profile_name: str, out_dir: Path, fresh: bool = Fal
         warnings.warn(message, ReportNote, stacklevel=2)
     table = pd.DataFrame(rows)
     extra = plugin_rows(config, profile_name, out_dir, list(accelerators), fresh, progress) if accelerators else []
-    write_outputs(table, config, profile_name, out_dir, extra)
+    scaling = []
+    scaling_scene = config.profile(profile_name).build_scaling_scene
+    if scaling_scene:
+        record, scaling_reused = build_scaling.generate(config, scaling_scene, out_dir, fresh)
+        if scaling_reused:
+            warnings.warn(f"Table 1: reused the build scaling of {scaling_scene} measured {record['measured_at']} "
+                          "(--fresh measures again)", ReportNote, stacklevel=2)
+        scaling = build_scaling.metrics_of(record)
+    write_outputs(table, config, profile_name, out_dir, extra, build_scaling_scene=scaling_scene)
     if progress:
         print(markdown_table(table))
         if extra:
             print(plugin_markdown(extra))
-    metrics = table_metrics(rows) + plugin_metrics(extra)
+    metrics = table_metrics(rows) + plugin_metrics(extra) + scaling
     write_metrics(out_dir, "table1", metrics)
     return metrics
 
@@ -563,7 +572,7 @@ def markdown_table(table: pd.DataFrame) -> str:
 
 
 def write_outputs(table: pd.DataFrame, config: Config, profile_name: str, out_dir: Path,
-                  plugins: list[dict] | None = None) -> None:
+                  plugins: list[dict] | None = None, build_scaling_scene: str = "") -> None:
     """Write table1.md and table1.csv atomically (and with plug-in rows, their section and table1_plugins.csv)."""
     profile = config.profile(profile_name)
     host = machine()
@@ -583,6 +592,9 @@ def write_outputs(table: pd.DataFrame, config: Config, profile_name: str, out_di
     )
     out_dir.mkdir(parents=True, exist_ok=True)
     text = header + markdown_table(table) + "\n"
+    if build_scaling_scene:
+        text += (f"\nBuild seconds against triangle count, with the fitted slope ({build_scaling_scene}): "
+                 "[table1_build.md](table1_build.md).\n")
     if plugins:
         text += ("\n## Plug-in accelerators\n\n"
                  "Each plug-in (`kdtrace report --accelerator SPEC`) on the same primary and incoherent rays as our "

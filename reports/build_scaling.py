@@ -1,0 +1,158 @@
+"""How the KD-tree build scales: build seconds against triangle count, with the fitted slope.
+
+The paper cites O(N log^2 N) for its SAH build; Wald & Havran (2006) give O(N log N) for
+a build that sorts once and inherits sorted order (ours for bounding-box splits,
+:func:`kdtrace._kdtree_build.build_presorted`). Measured on nested random subsets of one
+scene's triangles (a fixed-seed permutation; the first ``N`` of it for each size), so
+the sizes differ in count and not in kind. Each size is built :data:`REPEATS` times on
+one core after compilation (medians), for both variants (local = naive + pull-up).
+
+The slope of log(seconds) against log(N) is fitted by least squares and stated beside
+the slopes that ``N log N`` and ``N log^2 N`` themselves have over the same sizes (both
+above 1 at these sizes), so the reader can see which the measurement follows.
+
+Written to ``table1_build.md``, ``table1_build.csv`` and ``figures/build_scaling.png``;
+cached in ``rows/build_scaling.json`` under a key of the build configuration and sizes.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+from tabulate import tabulate
+
+from kdtrace.cache import atomic_write_bytes, content_key
+from kdtrace.config import Config
+from kdtrace.kdtree import VARIANTS, build_kdtree
+from kdtrace.provenance import machine
+from kdtrace.scene import Scene
+from kdtrace.scenes import load_scene
+from reports.metrics import Metric
+
+#: Fractions of the scene's triangles built (nested subsets), smallest first.
+FRACTIONS = (1 / 16, 1 / 8, 1 / 4, 1 / 2, 1.0)
+#: Builds per size and variant (medians).
+REPEATS = 3
+#: Seed of the triangle permutation.
+SUBSET_SEED = 20261202
+#: Version of the cached record's layout.
+RECORD_VERSION = 1
+
+
+def triangle_subset(scene: Scene, count: int, seed: int = SUBSET_SEED) -> Scene:
+    """The first ``count`` triangles of a fixed random permutation of ``scene``'s, as a scene."""
+    if not 1 <= count <= len(scene.triangles):
+        raise ValueError(f"subset of {count} triangles out of range 1..{len(scene.triangles)}")
+    order = np.random.default_rng(seed).permutation(len(scene.triangles))[:count]
+    return Scene(f"{scene.name}-subset{count}", scene.vertices, scene.triangles[np.sort(order)],
+                 scene.material_ids[np.sort(order)], scene.materials)
+
+
+def loglog_slope(counts, seconds) -> float:
+    """Least-squares slope of log(seconds) against log(counts)."""
+    return float(np.polyfit(np.log(np.asarray(counts, float)), np.log(np.asarray(seconds, float)), 1)[0])
+
+
+def measure(scene: Scene, config: Config, fractions=FRACTIONS, repeats: int = REPEATS) -> dict:
+    """Build seconds (medians of ``repeats``) of both variants at each subset size, and the fitted slopes."""
+    rows = []
+    for fraction in fractions:
+        subset = triangle_subset(scene, max(1, round(fraction * len(scene.triangles))))
+        row = {"triangles": len(subset.triangles)}
+        for variant in VARIANTS:
+            times = []
+            for _ in range(repeats):
+                with warnings.catch_warnings():
+                    warnings.simplefilter("ignore")  # zero-area triangles: counted in Table 1 already
+                    tree = build_kdtree(subset, variant, config.kdtree, cache=False)
+                times.append(tree.stats["build_seconds"])
+            row[f"{variant}_seconds"] = float(np.median(times))
+            row[f"{variant}_nodes"] = int(tree.stats["nodes"])
+            row[f"{variant}_references"] = int(tree.stats["triangle_references"])
+        rows.append(row)
+    counts = [row["triangles"] for row in rows]
+    n = np.asarray(counts, float)
+    return {
+        "scene": scene.name, "rows": rows,
+        "slopes": {variant: loglog_slope(counts, [row[f"{variant}_seconds"] for row in rows]) for variant in VARIANTS},
+        # Sparser subsets make smaller trees per triangle: the slope against the naive tree's
+        # references (the work the build writes) separates the algorithm from the tree's growth.
+        "slopes_by_references": {variant: loglog_slope([row["naive_references"] for row in rows],
+                                                       [row[f"{variant}_seconds"] for row in rows])
+                                 for variant in VARIANTS},
+        "reference_slopes": {"N log N": loglog_slope(n, n * np.log(n)), "N log^2 N": loglog_slope(n, n * np.log(n) ** 2)},
+    }
+
+
+def _key(scene_name: str, config: Config, fractions, repeats: int) -> str:
+    return content_key("build-scaling", RECORD_VERSION, scene_name, config.kdtree.__dict__, list(fractions), repeats,
+                       SUBSET_SEED)
+
+
+def generate(config: Config, scene_name: str, out_dir: Path, fresh: bool = False) -> tuple[dict, bool]:
+    """Measure (or reuse) the scaling record of ``scene_name`` and write its table and figure.
+
+    Returns
+    -------
+    record : dict
+        :func:`measure`'s record with ``key``, ``measured_at`` and ``machine``.
+    reused : bool
+        True when the record came from ``rows/build_scaling.json``.
+    """
+    out_dir = Path(out_dir)
+    path = out_dir / "rows" / "build_scaling.json"
+    key = _key(scene_name, config, FRACTIONS, REPEATS)
+    record = json.loads(path.read_text()) if path.exists() and not fresh else None
+    reused = record is not None and record.get("key") == key
+    if not reused:
+        record = {"key": key, "measured_at": time.strftime("%Y-%m-%d %H:%M:%S"), "machine": machine(),
+                  **measure(load_scene(scene_name), config)}
+        atomic_write_bytes(path, json.dumps(record, indent=1).encode())
+    write_outputs(record, out_dir)
+    return record, reused
+
+
+def write_outputs(record: dict, out_dir: Path) -> None:
+    """table1_build.md / .csv and figures/build_scaling.png, atomically."""
+    from reports.figures import _figure, write_figure
+
+    table = pd.DataFrame(record["rows"])
+    slopes, reference = record["slopes"], record["reference_slopes"]
+    host = record["machine"]
+    text = (f"# Table 1 — KD-tree build scaling ({record['scene']})\n\n"
+            f"Build seconds on one core after compilation (median of {REPEATS}) for nested random subsets of "
+            f"{record['scene']}'s triangles; local = the naive build plus the pull-up. Machine: {host['cpu']}, "
+            f"measured {record['measured_at']}. Fitted slope of log(seconds) against log(N): naive "
+            f"{slopes['naive']:.2f}, local {slopes['local']:.2f}; over the same sizes N log N has slope "
+            f"{reference['N log N']:.2f} and N log^2 N {reference['N log^2 N']:.2f}. Against the naive tree's "
+            f"triangle references instead (smaller subsets are sparser and make fewer references per triangle): "
+            f"naive {record['slopes_by_references']['naive']:.2f}, local {record['slopes_by_references']['local']:.2f}."
+            "\n\n"
+            + tabulate(table.to_dict("records"), headers="keys", tablefmt="github", floatfmt=".3f")
+            + "\n\n![build seconds against triangles](figures/build_scaling.png)\n")
+    atomic_write_bytes(out_dir / "table1_build.md", text.encode())
+    atomic_write_bytes(out_dir / "table1_build.csv", table.to_csv(index=False).encode())
+    figure = _figure(5.0, 3.6)
+    axes = figure.add_subplot()
+    for variant, marker in zip(VARIANTS, ("o", "s"), strict=True):
+        axes.loglog(table["triangles"], table[f"{variant}_seconds"], marker=marker,
+                    label=f"{variant} (slope {slopes[variant]:.2f})")
+    n = table["triangles"].to_numpy(float)
+    anchor = table["local_seconds"].iloc[-1] / (n[-1] * np.log(n[-1]))
+    axes.loglog(n, anchor * n * np.log(n), "k:", label=f"N log N (slope {reference['N log N']:.2f})")
+    axes.set_xlabel("triangles")
+    axes.set_ylabel("build seconds (one core)")
+    axes.set_title(f"KD-tree build, {record['scene']}")
+    axes.legend(fontsize="small")
+    write_figure(figure, out_dir / "figures" / "build_scaling.png")
+
+
+def metrics_of(record: dict) -> list[Metric]:
+    """The fitted slopes (``ratio``: a machine's constant factor cancels in a slope)."""
+    return [Metric(f"table1/build_scaling/{variant}_slope", "ratio", record["slopes"][variant],
+                   f"log-log slope of build seconds against triangles, {record['scene']}") for variant in VARIANTS]
