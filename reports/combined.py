@@ -96,27 +96,15 @@ def measure_scene(name: str, config: Config, profile_name: str, models: Reconstr
         (``psnr`` dB, ``rmse``), ``estimated_psnr`` (the paper's rule), reference
         provenance and warnings.
     """
-    from kdtrace.kdtree import build_kdtree
-    from kdtrace.render import render
-    from kdtrace.scenes import load_scene
     from reconstruction.baselines import bicubic
-    from references.mitsuba import render_reference
 
-    profile = config.profile(profile_name)
-    recon = config.reconstruction.profile(profile.reconstruction_profile)
-    width, height, spp, depth = profile.combined_width, profile.combined_height, recon.spp, recon.max_depth
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        scene = load_scene(name)
-        tree = build_kdtree(scene, "local", config.kdtree)
-        if progress is not None:
-            progress.set_postfix_str(f"{name}: reference {profile.combined_reference_spp} spp")
-        reference = render_reference(scene, profile.combined_reference_spp, depth, profile.seed % 2**32, width, height)
+        scene, reference, half_frame, settings = _pipeline_inputs(name, config, profile_name, progress)
+        width, height, spp, depth = settings
         if progress is not None:
             progress.set_postfix_str(f"{name}: pipeline")
-        frame, render_seconds = shortest(
-            lambda: render(scene, spp=spp, max_depth=depth, seed=profile.seed, width=width // 2, height=height // 2,
-                           aux=True, tree=tree), warmup=0, seconds_of=lambda result: result.seconds)
+        frame, render_seconds = shortest(half_frame, warmup=0, seconds_of=lambda result: result.seconds)
         denoiser, superres = models.denoisers[name], models.superres
         final, (denoise_seconds, superres_seconds) = timed_reconstruction(
             [lambda f: denoise_frame(denoiser, f), lambda d: superresolve_frame(superres, d)], frame)
@@ -139,6 +127,80 @@ def measure_scene(name: str, config: Config, profile_name: str, models: Reconstr
     }
 
 
+def _pipeline_inputs(name: str, config: Config, profile_name: str, progress: tqdm | None = None):
+    """The scene, its Mitsuba reference at the final size and a half-size render of it (a callable).
+
+    Returns ``(scene, reference, render_half_frame, (width, height, spp, max_depth))``;
+    ``render_half_frame()`` renders the half-size 4-spp frame with auxiliary buffers
+    (fixed seed: the same frame every call).
+    """
+    from kdtrace.kdtree import build_kdtree
+    from kdtrace.render import render
+    from kdtrace.scenes import load_scene
+    from references.mitsuba import render_reference
+
+    profile = config.profile(profile_name)
+    recon = config.reconstruction.profile(profile.reconstruction_profile)
+    width, height, spp, depth = profile.combined_width, profile.combined_height, recon.spp, recon.max_depth
+    scene = load_scene(name)
+    tree = build_kdtree(scene, "local", config.kdtree)
+    if progress is not None:
+        progress.set_postfix_str(f"{name}: reference {profile.combined_reference_spp} spp")
+    reference = render_reference(scene, profile.combined_reference_spp, depth, profile.seed % 2**32, width, height)
+
+    def render_half_frame():
+        return render(scene, spp=spp, max_depth=depth, seed=profile.seed, width=width // 2, height=height // 2,
+                      aux=True, tree=tree)
+
+    return scene, reference, render_half_frame, (width, height, spp, depth)
+
+
+#: Core tile side of the tiled denoising shown against the whole-frame result (Figure 8).
+FIGURE_TILE = 64
+
+
+def write_pipeline_figures(config: Config, profile_name: str, out_dir: Path, fresh: bool = False) -> list[Path]:
+    """Figure 8 per reconstruction scene: ``figures/SCENE-pipeline.png`` (kept unless ``fresh``).
+
+    The stages of the pipeline at the final size (the half-size noisy render and the
+    denoised frame, each upsampled bicubically; denoised + superresolved) beside the
+    reference, and the denoiser evaluated in :data:`FIGURE_TILE`-pixel tiles minus the
+    whole-frame evaluation (:func:`reports.figures.pipeline_panel`). The frame is
+    re-rendered with the rows' seed (the same frame the rows measured).
+    """
+    from reconstruction.baselines import bicubic
+    from reconstruction.inference import denoise
+    from reports.figures import pipeline_panel
+
+    profile = config.profile(profile_name)
+    recon = config.reconstruction.profile(profile.reconstruction_profile)
+    names = list(profile.reconstruction_scenes)
+    paths, models = [], None
+    for name in names:
+        path = out_dir / "figures" / f"{name}-pipeline.png"
+        if path.exists() and not fresh:
+            paths.append(path)
+            continue
+        if models is None:
+            models = Reconstruction.load(names, recon, names, False)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # the rows record the run's warnings
+            _, reference, half_frame, _ = _pipeline_inputs(name, config, profile_name)
+            frame = half_frame()
+        denoiser = models.denoisers[name]
+        whole = denoise_frame(denoiser, frame)
+        tiled = denoise(denoiser, frame.rgb, frame.albedo, tile=FIGURE_TILE)
+        images = {"noisy, bicubic 2x": bicubic(np.clip(frame.rgb, 0.0, 1.0)),
+                  "denoised, bicubic 2x": bicubic(np.clip(whole, 0.0, 1.0)),
+                  "denoised + our SR": superresolve_frame(models.superres, whole)}
+        pipeline_panel(images, reference.rgb, path, difference=(tiled, whole),
+                       title=f"{name}: {frame.rgb.shape[1]}x{frame.rgb.shape[0]} {recon.spp} spp -> "
+                             f"{reference.rgb.shape[1]}x{reference.rgb.shape[0]}",
+                       reference_label=f"Mitsuba {reference.spp} spp")
+        paths.append(path)
+    return paths
+
+
 def generate(config: Config, profile_name: str, out_dir: str | Path, fresh: bool = False,
              progress: bool = True) -> list[Metric]:
     """Run (or reuse) the §6.4 combined pipeline per scene and write its report.
@@ -156,7 +218,8 @@ def generate(config: Config, profile_name: str, out_dir: str | Path, fresh: bool
     """
     out_dir = Path(out_dir)
     rows = scene_rows("combined", ROW_VERSION, measure_scene, config, profile_name, out_dir, fresh, progress)
-    write_outputs(rows, config, profile_name, out_dir)
+    figures = write_pipeline_figures(config, profile_name, out_dir, fresh)
+    write_outputs(rows, config, profile_name, out_dir, figures)
     metrics = []
     for row in rows:
         metrics.append(Metric(f"combined/{row['scene']}/psnr", "psnr", row["final"]["psnr"],
@@ -213,8 +276,9 @@ def markdown_table(frame: pd.DataFrame) -> str:
         "noisy + bicubic PSNR", "paper total s (1 core, 1024²)"], tablefmt="github")
 
 
-def write_outputs(rows: Sequence[dict], config: Config, profile_name: str, out_dir: Path) -> None:
-    """Write combined.md, combined.csv and combined.provenance.json atomically."""
+def write_outputs(rows: Sequence[dict], config: Config, profile_name: str, out_dir: Path,
+                  figures: Sequence[Path] = ()) -> None:
+    """Write combined.md (linking ``figures``), combined.csv and combined.provenance.json atomically."""
     profile = config.profile(profile_name)
     recon = config.reconstruction.profile(profile.reconstruction_profile)
     provenance = stamp(config.to_dict(), profile=profile_name, seed=profile.seed)
@@ -241,6 +305,8 @@ def write_outputs(rows: Sequence[dict], config: Config, profile_name: str, out_d
         f"{COMBINED_CBOX_MEASURED['psnr']} dB (RMSE {COMBINED_CBOX_MEASURED['rmse']}) on four Cornell box renderings.\n\n"
         + (f"Warnings during the run: {'; '.join(warned)}\n\n" if warned else "")
         + markdown_table(frame) + "\n"
+        + ("\n## Figure 8: the pipeline's stages and the tiled-minus-whole denoiser difference\n\n"
+           + "".join(f"![{Path(p).stem}](figures/{Path(p).name})\n\n" for p in figures) if figures else "")
     )
     atomic_write_bytes(out_dir / "combined.md", text.encode())
     atomic_write_bytes(out_dir / "combined.csv", frame.to_csv(index=False).encode())

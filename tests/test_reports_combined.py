@@ -52,6 +52,9 @@ def test_generate_end_to_end_and_reuse(shared_scenes, isolated_cache, tmp_path, 
     assert record["total_seconds"] == pytest.approx(stages) and min(record[["denoise_seconds", "superres_seconds"]]) > 0
     assert math.isnan(record["paper_estimated_psnr"])  # cbox-original stands for none of the paper's scenes
     assert "cbox-original" in (out / "combined.md").read_text()
+    # Figure 8, linked from the Markdown.
+    assert (out / "figures" / "cbox-original-pipeline.png").stat().st_size > 1000
+    assert "](figures/cbox-original-pipeline.png)" in (out / "combined.md").read_text()
 
     row = json.loads((out / "rows" / "combined" / "cbox-original.json").read_text())["row"]
     assert row["final"]["psnr"] == pytest.approx(-20 * math.log10(row["final"]["rmse"]))
