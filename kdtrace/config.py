@@ -113,7 +113,8 @@ class ProfileConfig:
         shows how the mixed model degrades from near to far.
     build_scaling_scene : str
         Scene whose nested triangle subsets time the KD-tree build against triangle count
-        (Table 1's build scaling, :mod:`reports.build_scaling`); "" for none.
+        (Table 1's build scaling, :mod:`reports.build_scaling`); "" for none. Measured only
+        when the scene is among ``scenes`` (so ``--scenes`` without it skips it).
     variant_scenes : tuple of str
         Reconstruction scenes that also get the documented normal + depth variant of the
         per-scene denoiser (auxiliary albedo, normal and depth; Table 2), measured on the same

@@ -56,7 +56,7 @@ from reports.notes import ReportNote
 from reports.paper_figures import TABLE1
 
 #: Version of the row layout; rows measured with another version are measured again.
-ROW_VERSION = 4
+ROW_VERSION = 5
 #: Timed rounds per ray set (each times every intersector once; medians), after one warm-up call.
 TIMING_ROUNDS = 7
 #: Frame renders per tree, in alternating order (naive-local, local-naive, ...): even, so
@@ -159,7 +159,8 @@ def scene_row(name: str, config: Config, profile_name: str, progress: tqdm) -> d
     row: dict[str, object] = {"scene": name, "triangles": len(scene.triangles),
                               "zero_area_triangles": int(scene.degenerate_mask().sum())}
     for variant, tree in trees.items():
-        for key in ("triangle_references", "interior_references", "tree_bytes", "build_seconds", "max_depth", "sah_cost", "cache_hit"):
+        for key in ("nodes", "triangle_references", "interior_references", "tree_bytes", "build_seconds", "max_depth",
+                    "sah_cost", "cache_hit"):
             row[f"{variant}_{key}"] = tree.stats[key]
     row["reference_reduction"] = 1.0 - row["local_triangle_references"] / row["naive_triangle_references"]
 
@@ -169,6 +170,10 @@ def scene_row(name: str, config: Config, profile_name: str, progress: tqdm) -> d
         seconds = interleaved_seconds({**trees, "embree": embree}, origins, directions)
         for label, timings in seconds.items():
             row[f"{kind}_mrays_{label}"] = len(origins) / statistics.median(timings) / 1e6
+        for variant, tree in trees.items():  # the work behind the speed, from the last timed call
+            work = tree.last_counters.mean()
+            row[f"{kind}_nodes_per_ray_{variant}"] = work["nodes_per_ray"]
+            row[f"{kind}_tests_per_ray_{variant}"] = work["tests_per_ray"]
         row[f"{kind}_local_over_naive"] = paired_speedup(seconds["naive"], seconds["local"])
         row[f"{kind}_local_over_embree"] = paired_speedup(seconds["embree"], seconds["local"])
 
@@ -497,6 +502,7 @@ def generate(config: Config, profile_name: str, out_dir: Path, fresh: bool = Fal
     extra = plugin_rows(config, profile_name, out_dir, list(accelerators), fresh, progress) if accelerators else []
     scaling = []
     scaling_scene = config.profile(profile_name).build_scaling_scene
+    scaling_scene = scaling_scene if scaling_scene in names else ""  # --scenes without it: skipped
     if scaling_scene:
         record, scaling_reused = build_scaling.generate(config, scaling_scene, out_dir, fresh)
         if scaling_reused:
@@ -541,6 +547,12 @@ def _pair(a: float, b: float, digits: int = 2) -> str:
     return f"{a:.{digits}f} / {b:.{digits}f}"
 
 
+def _work(row: dict, kind: str) -> str:
+    """``nodes / tests`` per ray of the local-branch tree on one ray set (blank for rows without them)."""
+    nodes, tests = row.get(f"{kind}_nodes_per_ray_local"), row.get(f"{kind}_tests_per_ray_local")
+    return "" if nodes is None or tests is None else f"{nodes:.1f} / {tests:.1f}"
+
+
 def markdown_table(table: pd.DataFrame) -> str:
     """Table 1 as Markdown: ours beside the paper's, with ratios."""
     lines = []
@@ -561,6 +573,8 @@ def markdown_table(table: pd.DataFrame) -> str:
                                                   f"{row['primary_mrays_embree']:.2f}",
             "incoherent Mrays/s naive/local/Embree": f"{row['incoherent_mrays_naive']:.2f} / {row['incoherent_mrays_local']:.2f} / "
                                                      f"{row['incoherent_mrays_embree']:.2f}",
+            "local nodes / tests per ray, primary": _work(row, "primary"),
+            "incoherent": _work(row, "incoherent"),
             "frame s naive/local": _pair(row["frame_seconds_naive"], row["frame_seconds_local"], 3),
             "paper frame s naive/local": _pair(paper["naive_frame_seconds"], paper["local_frame_seconds"]) if paper else "",
             "local/naive frame speed": f"{row['frame_local_over_naive']:.2f}",
