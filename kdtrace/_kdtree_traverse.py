@@ -186,8 +186,8 @@ def trace_ray(
     16 contiguous bytes. ``watertight`` picks :func:`intersect_triangle_watertight`
     over Möller–Trumbore. ``st_*`` are caller-owned stack buffers (no allocation per ray),
     and ``ray`` (float64, :data:`RAY_SCRATCH`) holds origin, direction and reciprocal
-    direction, indexed by a node's axis: a load, where a tuple indexed at run time compiles
-    to a branch per use (10% slower on bunny's random rays, 2026-12-02).
+    direction, indexed by a node's axis (measured 9-12% faster than indexing tuples by the
+    axis at run time, bunny's random rays, one thread, 2026-12-02).
     """
     best_t = tmax
     best_tri = -1
