@@ -241,13 +241,9 @@ def build_naive(v0, v1, v2, triangle_ids, root_min, root_max, k_t, k_i, min_leaf
             refs, n_refs = _write_leaf(meta, start_of, count_of, node, refs, n_refs, work[start:end])
             continue
 
-        # Interior node: allocate both children next to each other.
-        if n_nodes + 2 > meta.shape[0]:
-            meta, split, start_of, count_of, area_of = _grow_nodes(meta, split, start_of, count_of, area_of,
-                                                                  2 * meta.shape[0])
-        left = n_nodes
+        meta, split, start_of, count_of, area_of, left = _add_children(meta, split, start_of, count_of, area_of,
+                                                                       n_nodes, node, best_axis, best_pos)
         n_nodes += 2
-        _make_interior(meta, split, start_of, count_of, node, left, best_axis, best_pos)
 
         # Partition: right list first (it is processed last), then the left list above it.
         # Clipped bounds decide (perfect splits); on the unclipped path they decide as the
@@ -357,12 +353,9 @@ def build_presorted(v0, v1, v2, triangle_ids, root_min, root_max, k_t, k_i, min_
         if best_axis < 0 or best_cost > k_i * n:
             refs, n_refs = _write_leaf(meta, start_of, count_of, node, refs, n_refs, work[start:start + n])
             continue
-        if n_nodes + 2 > meta.shape[0]:
-            meta, split, start_of, count_of, area_of = _grow_nodes(meta, split, start_of, count_of, area_of,
-                                                                  2 * meta.shape[0])
-        left = n_nodes
+        meta, split, start_of, count_of, area_of, left = _add_children(meta, split, start_of, count_of, area_of,
+                                                                       n_nodes, node, best_axis, best_pos)
         n_nodes += 2
-        _make_interior(meta, split, start_of, count_of, node, left, best_axis, best_pos)
         # Stable partition of each list: the right child's lists first (processed last).
         n_right = 0
         n_left = 0
@@ -447,12 +440,20 @@ def _grow_nodes(meta, split, start_of, count_of, area_of, capacity):
 
 
 @njit(cache=True)
-def _make_interior(meta, split, start_of, count_of, node, left, axis, pos):
-    """Make ``node`` an interior node split at ``pos`` along ``axis``, children ``left`` and ``left + 1``."""
-    meta[node] = (left << 2) | axis
+def _add_children(meta, split, start_of, count_of, area_of, n_nodes, node, axis, pos):
+    """Make ``node`` interior (split at ``pos`` along ``axis``) with two new children next to each other.
+
+    The children are nodes ``n_nodes`` and ``n_nodes + 1``; the arrays grow (doubling)
+    when they are full. Returns the (possibly new) arrays and the left child's index.
+    """
+    if n_nodes + 2 > meta.shape[0]:
+        meta, split, start_of, count_of, area_of = _grow_nodes(meta, split, start_of, count_of, area_of,
+                                                              2 * meta.shape[0])
+    meta[node] = (n_nodes << 2) | axis
     split[node] = np.float32(pos)
     start_of[node] = 0
     count_of[node] = 0
+    return meta, split, start_of, count_of, area_of, n_nodes
 
 
 @njit(cache=True)
