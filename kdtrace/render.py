@@ -41,6 +41,9 @@ from kdtrace.scene import Camera, Scene
 FEATURES: tuple[str, ...] = ("specular", "textures", "normals", "sky", "emitters", "emitter_selection", "aux")
 #: Pass as ``features`` to force the general kernel.
 ALL_FEATURES = frozenset(FEATURES)
+#: Positions of :func:`kdtrace._render_kernels.render_tiles`' compile-time (``literally``)
+#: arguments: the feature flags, then ``watertight`` after the five tree arrays.
+_LITERAL_ARGS = frozenset(range(len(FEATURES))) | {len(FEATURES) + 5}
 _KINDS = {"diffuse": kernels.KIND_DIFFUSE, "mirror": kernels.KIND_MIRROR, "dielectric": kernels.KIND_DIELECTRIC}
 
 
@@ -232,6 +235,19 @@ def _pack(scene: Scene, tree: KDTree) -> dict[str, np.ndarray]:
     }
 
 
+def tile_stride(tiles: int) -> int:
+    """The step through the tile indices of :func:`kdtrace._render_kernels.render_tiles`.
+
+    The integer nearest ``0.618 * tiles`` (the golden ratio's fraction) that is coprime
+    to ``tiles``, so ``k -> (k * stride) % tiles`` is a permutation whose contiguous
+    ranges of ``k`` scatter over the image.
+    """
+    stride = max(1, round(0.6180339887 * tiles))
+    while math.gcd(stride, tiles) != 1:
+        stride += 1
+    return stride
+
+
 def _run(flags, packed, cam, width, height, spp, max_depth, rr_depth, seed, tile_size, aux):
     rgb = np.zeros((height, width, 3), np.float32)
     variance = np.zeros((height, width, 3), np.float32)
@@ -241,8 +257,17 @@ def _run(flags, packed, cam, width, height, spp, max_depth, rr_depth, seed, tile
     depth = np.zeros(shape, np.float32)
     tiles = -(-width // tile_size) * -(-height // tile_size)
     counts = np.zeros((tiles, 4), np.int64)
-    kernels.render_tiles(*flags, *packed.values(), cam, width, height, spp, max_depth, rr_depth, np.uint64(seed), tile_size,
-                 rgb, variance, albedo, normal, depth, counts)
+    args = (*flags, *packed.values(), cam, width, height, spp, max_depth, rr_depth, np.uint64(seed), tile_size,
+            tile_stride(tiles), rgb, variance, albedo, normal, depth, counts)
+    # numba resolves a ``literally`` kernel's argument types anew on every call: 70-100 ms
+    # per call, measured 2026-12-02 on cbox-original (more than a whole 256x256 frame at
+    # 1 spp). Once a specialisation exists, its machine code is called directly.
+    signature = tuple(numba.types.literal(a) if i in _LITERAL_ARGS else numba.typeof(a) for i, a in enumerate(args))
+    compiled = kernels.render_tiles.overloads.get(signature)
+    if compiled is None:
+        kernels.render_tiles(*args)  # compiles, or loads from numba's cache
+    else:
+        compiled.entry_point(*args)
     return rgb, variance, albedo, normal, depth, counts.sum(axis=0)
 
 
