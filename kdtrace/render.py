@@ -31,7 +31,9 @@ from pathlib import Path
 import numba
 import numpy as np
 
+from kdtrace import _kdtree_build, _kdtree_traverse
 from kdtrace import _render_kernels as kernels
+from kdtrace.cache import source_fingerprint
 from kdtrace.config import DEFAULT_CONFIG
 from kdtrace.kdtree import KDTree, build_kdtree
 from kdtrace.rays import camera_basis
@@ -233,6 +235,12 @@ def _pack(scene: Scene, tree: KDTree) -> dict[str, np.ndarray]:
         "emit_tri": emit_tri, "emit_cdf": emit_cdf, "tri_emit_pdf": tri_emit_pdf,
         "sky_rgb": np.asarray(scene.sky.radiance if scene.sky is not None else (0.0, 0.0, 0.0), np.float64),
     }
+
+
+def renderer_fingerprint() -> str:
+    """Digest of the source of the tree builder, the traversal, the path tracer and this
+    module: part of the key of every cached timing of them (:func:`kdtrace.cache.source_fingerprint`)."""
+    return source_fingerprint(_kdtree_build, _kdtree_traverse, kernels, sys.modules[__name__])
 
 
 def tile_stride(tiles: int) -> int:

@@ -26,7 +26,8 @@ import numpy as np
 import pandas as pd
 from tabulate import tabulate
 
-from kdtrace.cache import atomic_write_bytes, content_key
+from kdtrace import _kdtree_build
+from kdtrace.cache import atomic_write_bytes, content_key, source_fingerprint
 from kdtrace.config import Config
 from kdtrace.kdtree import VARIANTS, build_kdtree
 from kdtrace.provenance import machine
@@ -90,7 +91,8 @@ def measure(scene: Scene, config: Config, fractions=FRACTIONS, repeats: int = RE
 
 
 def _key(scene_name: str, config: Config, fractions, repeats: int) -> str:
-    return content_key("build-scaling", RECORD_VERSION, scene_name, config.kdtree.__dict__, list(fractions), repeats,
+    return content_key("build-scaling", RECORD_VERSION, source_fingerprint(_kdtree_build), scene_name,
+                       config.kdtree.__dict__, list(fractions), repeats,
                        SUBSET_SEED)
 
 

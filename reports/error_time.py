@@ -738,6 +738,8 @@ def scene_rows(kind: str, version: int, measure_scene: Callable[..., dict], conf
     list of dict
         One row per scene, in the profile's order.
     """
+    from kdtrace.render import renderer_fingerprint  # imported when measuring, as render is
+
     profile = config.profile(profile_name)
     recon = config.reconstruction.profile(profile.reconstruction_profile)
     names = list(profile.reconstruction_scenes)
@@ -748,7 +750,7 @@ def scene_rows(kind: str, version: int, measure_scene: Callable[..., dict], conf
     bar = tqdm(names, unit="scene", desc=f"{kind} ({profile_name})", disable=not progress)
     for name in bar:
         path = out_dir / "rows" / kind / f"{name}.json"
-        key = content_key(f"{kind}-row", version, name, TIMING_REPEATS, settings)
+        key = content_key(f"{kind}-row", version, renderer_fingerprint(), name, TIMING_REPEATS, settings)
         if not fresh and path.exists():
             saved = json.loads(path.read_text())
             if saved.get("key") == key:

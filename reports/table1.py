@@ -46,7 +46,7 @@ from kdtrace.config import Config
 from kdtrace.kdtree import VARIANTS, build_kdtree
 from kdtrace.provenance import machine
 from kdtrace.rays import camera_rays, random_rays
-from kdtrace.render import render
+from kdtrace.render import render, renderer_fingerprint
 from kdtrace.scenes import load_scene
 from references.agreement import OURS_EXACT, UNEXPLAINED, WRONG, check_scene, format_table
 from references.embree import EmbreeIntersector
@@ -193,7 +193,7 @@ def scene_row(name: str, config: Config, profile_name: str, progress: tqdm) -> d
 
 def _row_key(name: str, config: Config, profile_name: str, threads: int | None = None) -> str:
     profile = config.profile(profile_name)
-    return content_key("table1-row", ROW_VERSION, name, config.kdtree.__dict__, config.render.__dict__,
+    return content_key("table1-row", ROW_VERSION, renderer_fingerprint(), name, config.kdtree.__dict__, config.render.__dict__,
                        {field: getattr(profile, field) for field in PROFILE_FIELDS},
                        numba.get_num_threads() if threads is None else threads)
 
