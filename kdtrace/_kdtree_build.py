@@ -96,11 +96,18 @@ def clipped_bounds(v0, v1, v2, bmin, bmax, poly_a, poly_b, out_min, out_max):
 
 
 @njit(cache=True)
-def _best_split_on_axis(lo, hi, planar, n, bmin, bmax, axis, area, k_t, k_i, empty_bonus):
-    """Sweep the sorted triangle bounds along one axis; returns (cost, position)."""
+def _best_split_on_axis(lo, hi, planar, n, bmin, bmax, axis, area, k_t, k_i, empty_bonus, candidates):
+    """Sweep the sorted triangle bounds along one axis; returns (cost, position).
+
+    The planes tried are every triangle bound (``candidates`` empty: the SAH events of
+    pbrt and Wald & Havran) or the sorted positions ``candidates`` (the paper's triangle
+    centroids, Algorithm 1's FindPlaneSAH).
+    """
     best_cost = np.inf
     best_pos = 0.0
     n_planar = planar.shape[0]
+    n_candidates = candidates.shape[0]
+    c = 0  # candidates[:c] tried
     i = 0  # lo[:i] < p
     j = 0  # hi[:j] <= p
     q = 0  # planar[:q] < p
@@ -108,8 +115,15 @@ def _best_split_on_axis(lo, hi, planar, n, bmin, bmax, axis, area, k_t, k_i, emp
     box_hi = bmax[axis]
     cmin = np.empty(3)
     cmax = np.empty(3)
-    while i < n or j < n:
-        if i < n and (j >= n or lo[i] <= hi[j]):
+    while (c < n_candidates) if n_candidates > 0 else (i < n or j < n):
+        if n_candidates > 0:
+            p = candidates[c]
+            c += 1
+            if c < n_candidates and candidates[c] == p:
+                continue  # a repeated position is tried once
+            while i < n and lo[i] < p:
+                i += 1
+        elif i < n and (j >= n or lo[i] <= hi[j]):
             p = lo[i]
         else:
             p = hi[j]
@@ -135,13 +149,15 @@ def _best_split_on_axis(lo, hi, planar, n, bmin, bmax, axis, area, k_t, k_i, emp
             if cost < best_cost:
                 best_cost = cost
                 best_pos = p
-        while i < n and lo[i] <= p:
-            i += 1
+        if n_candidates == 0:
+            while i < n and lo[i] <= p:
+                i += 1
     return best_cost, best_pos
 
 
 @njit(cache=True)
-def build_naive(v0, v1, v2, triangle_ids, root_min, root_max, k_t, k_i, min_leaf, max_depth, cycle_axes, empty_bonus, clip):
+def build_naive(v0, v1, v2, triangle_ids, root_min, root_max, k_t, k_i, min_leaf, max_depth, cycle_axes, empty_bonus, clip,
+                centroids):
     """Build the naive SAH KD-tree (Algorithm 1): only leaves hold triangles.
 
     Parameters
@@ -166,6 +182,9 @@ def build_naive(v0, v1, v2, triangle_ids, root_min, root_max, k_t, k_i, min_leaf
         True: classify triangles by their exact overlap with each node ("perfect
         splits"); False: by their bounding box against the split plane (the paper's
         naive build, which duplicates more).
+    centroids : bool
+        True: try the planes through the node's triangle centroids (the paper's
+        FindPlaneSAH); False: through every triangle bound (the exact SAH sweep).
 
     Returns
     -------
@@ -230,7 +249,15 @@ def build_naive(v0, v1, v2, triangle_ids, root_min, root_max, k_t, k_i, min_leaf
                 hi = np.sort(tri_max[:n, axis])
                 flat = tri_min[:n, axis] == tri_max[:n, axis]
                 planar = np.sort(tri_min[:n, axis][flat])
-                cost, pos = _best_split_on_axis(lo, hi, planar, n, bmin, bmax, axis, area, k_t, k_i, empty_bonus)
+                candidates = np.empty(0)
+                if centroids:
+                    candidates = np.empty(n)
+                    for k in range(n):
+                        t = work[start + k]
+                        candidates[k] = (v0[t, axis] + v1[t, axis] + v2[t, axis]) / 3.0
+                    candidates.sort()
+                cost, pos = _best_split_on_axis(lo, hi, planar, n, bmin, bmax, axis, area, k_t, k_i, empty_bonus,
+                                                candidates)
                 if cost < best_cost:
                     best_cost = cost
                     best_axis = axis
@@ -286,7 +313,8 @@ def build_presorted(v0, v1, v2, triangle_ids, root_min, root_max, k_t, k_i, min_
     (tests/test_kdtree.py compares the two). Perfect splits (``clip=True``) change a
     triangle's bounds along every axis, so they stay with :func:`build_naive`.
 
-    Parameters and returns as :func:`build_naive` (without ``clip``).
+    Parameters and returns as :func:`build_naive` (without ``clip`` and ``centroids``: the
+    sweep tries every triangle bound).
     """
     n_tris = v0.shape[0]
     raw_lo = np.empty((n_tris, 3))
@@ -316,6 +344,7 @@ def build_presorted(v0, v1, v2, triangle_ids, root_min, root_max, k_t, k_i, min_
     lo = np.empty(m)
     hi = np.empty(m)
     planar = np.empty(m)
+    no_candidates = np.empty(0)
     depth_reached = 0
     while sp > 0:
         sp -= 1
@@ -344,7 +373,7 @@ def build_presorted(v0, v1, v2, triangle_ids, root_min, root_max, k_t, k_i, min_
                         n_planar += 1
                     hi[i] = min(bmax[axis], raw_hi[work[by_hi + i], axis])
                 cost, pos = _best_split_on_axis(lo[:n], hi[:n], planar[:n_planar], n, bmin, bmax, axis, area,
-                                                k_t, k_i, empty_bonus)
+                                                k_t, k_i, empty_bonus, no_candidates)
                 if cost < best_cost:
                     best_cost = cost
                     best_axis = axis

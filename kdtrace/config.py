@@ -38,6 +38,9 @@ class KDTreeConfig:
         ``"all"`` (best SAH plane over the three axes) or ``"cycle"`` (paper: depth % 3).
     empty_bonus : float
         Fraction by which a split that leaves one child empty is favoured.
+    split_candidates : str
+        Planes the SAH tries: ``"bounds"`` (every triangle bound: the exact sweep) or
+        ``"centroids"`` (the paper's FindPlaneSAH: the triangles' centroids).
     clip_triangles : bool
         Classify triangles by exact overlap with each node (perfect splits) instead of
         by their bounding boxes (the paper's naive build).
@@ -54,6 +57,7 @@ class KDTreeConfig:
     depth_log_factor: float = 1.3
     axis_selection: str = "all"
     empty_bonus: float = 0.2
+    split_candidates: str = "bounds"
     clip_triangles: bool = False
     triangle_test: str = "watertight"
 
@@ -64,6 +68,8 @@ class KDTreeConfig:
             raise ValueError("kdtree.min_leaf_size must be >= 1")
         if self.axis_selection not in ("all", "cycle"):
             raise ValueError("kdtree.axis_selection must be 'all' or 'cycle'")
+        if self.split_candidates not in ("bounds", "centroids"):
+            raise ValueError("kdtree.split_candidates must be 'bounds' or 'centroids'")
         if not 0.0 <= self.empty_bonus < 1.0:
             raise ValueError("kdtree.empty_bonus must be in [0, 1)")
         if self.triangle_test not in TRIANGLE_TESTS:
@@ -115,6 +121,10 @@ class ProfileConfig:
         Scene whose nested triangle subsets time the KD-tree build against triangle count
         (Table 1's build scaling, :mod:`reports.build_scaling`); "" for none. Measured only
         when the scene is among ``scenes`` (so ``--scenes`` without it skips it).
+    sensitivity_scenes : tuple of str
+        Scenes whose trees are also built with the paper's recipe (axes cycled by depth,
+        centroid candidates), to show under which tree its local-branch claims hold
+        (:mod:`reports.sensitivity`); only those among ``scenes`` are measured.
     variant_scenes : tuple of str
         Reconstruction scenes that also get the documented normal + depth variant of the
         per-scene denoiser (auxiliary albedo, normal and depth; Table 2), measured on the same
@@ -143,6 +153,7 @@ class ProfileConfig:
     unseen_scene: str = ""
     far_unseen_scene: str = ""
     build_scaling_scene: str = ""
+    sensitivity_scenes: tuple[str, ...] = ()
     variant_scenes: tuple[str, ...] = ()
     sweep_spp: tuple[int, ...] = (1, 2, 4, 8, 16, 32)
     sweep_width: int = 128

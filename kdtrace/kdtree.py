@@ -242,7 +242,7 @@ def _compile_build_kernels() -> None:
     v1 = v0 + [1.0, 0.0, 0.0]
     v2 = v0 + [0.0, 1.0, 0.0]
     args = (v0, v1, v2, np.arange(2, dtype=np.int32), v0.min(0), v2.max(0) + 1.0, 1.0, 1.0, 0, 4, False, 0.0)
-    for arrays in (build_kernels.build_naive(*args, True), build_kernels.build_presorted(*args)):
+    for arrays in (build_kernels.build_naive(*args, True, False), build_kernels.build_presorted(*args)):
         build_kernels.pull_up(arrays[0], arrays[2], arrays[3], arrays[4])
 
 
@@ -259,10 +259,11 @@ def _build_arrays(scene: Scene, variant: str, config: KDTreeConfig):
             np.ascontiguousarray(corners[:, 2]), triangle_ids, lo, hi,
             config.traversal_cost, config.intersection_cost, config.min_leaf_size,
             max_depth_for(len(triangle_ids), config), config.axis_selection == "cycle", config.empty_bonus)
-    # Bounding-box splits sort once (O(N log N)); perfect splits re-sort per node (the same
-    # tree either way for clip_triangles = false: tests/test_kdtree.py).
-    if config.clip_triangles:
-        built = build_kernels.build_naive(*args, True)
+    # Bounding-box splits at triangle bounds sort once (O(N log N)); perfect splits and
+    # centroid candidates re-sort per node (the same tree either way for clip_triangles =
+    # false and split_candidates = "bounds": tests/test_kdtree.py).
+    if config.clip_triangles or config.split_candidates == "centroids":
+        built = build_kernels.build_naive(*args, config.clip_triangles, config.split_candidates == "centroids")
     else:
         built = build_kernels.build_presorted(*args)
     meta, split, start, count, refs, node_area, depth_reached = built

@@ -45,18 +45,18 @@ from kdtrace.cache import atomic_write_bytes, content_key
 from kdtrace.config import Config
 from kdtrace.kdtree import VARIANTS, build_kdtree
 from kdtrace.provenance import machine
-from kdtrace.rays import camera_rays, random_rays
+from kdtrace.rays import camera_rays, random_rays, shadow_rays
 from kdtrace.render import render, renderer_fingerprint
 from kdtrace.scenes import load_scene
 from references.agreement import OURS_EXACT, UNEXPLAINED, WRONG, check_scene, format_table
 from references.embree import EmbreeIntersector
-from reports import build_scaling
+from reports import build_scaling, sensitivity
 from reports.metrics import Metric, write_metrics
 from reports.notes import ReportNote
 from reports.paper_figures import TABLE1
 
 #: Version of the row layout; rows measured with another version are measured again.
-ROW_VERSION = 5
+ROW_VERSION = 6
 #: Timed rounds per ray set (each times every intersector once; medians), after one warm-up call.
 TIMING_ROUNDS = 7
 #: Frame renders per tree, in alternating order (naive-local, local-naive, ...): even, so
@@ -77,23 +77,29 @@ def agreement_fields(agreement) -> dict:
             "agreement_table": format_table(agreement), "agreement_counts": agreement.to_dict("records")}
 
 def interleaved_seconds(intersectors: dict, origins: np.ndarray, directions: np.ndarray,
-                        rounds: int = TIMING_ROUNDS) -> dict[str, list[float]]:
-    """Seconds of ``intersect`` per intersector and round, the intersectors taking turns.
+                        rounds: int = TIMING_ROUNDS, tmax: np.ndarray | None = None) -> dict[str, list[float]]:
+    """Seconds of ``intersect`` (or, given ``tmax``, ``occluded``) per intersector and round,
+    the intersectors taking turns.
 
     Every intersector is called once on a few rays first (compilation, scene commit: never
     timed). Then each round times every intersector once, in an order rotated by one each
     round, so that a burst of load from other processes hits all of them alike and the
     per-round ratios stay meaningful on a shared machine.
     """
+    def query(intersector, count):
+        if tmax is None:
+            return intersector.intersect(origins[:count], directions[:count])
+        return intersector.occluded(origins[:count], directions[:count], tmax[:count])
+
     for intersector in intersectors.values():
-        intersector.intersect(origins[:64], directions[:64])
+        query(intersector, 64)
     names = list(intersectors)
     seconds: dict[str, list[float]] = {name: [] for name in names}
     for index in range(rounds):
         shift = index % len(names)
         for name in names[shift:] + names[:shift]:
             started = time.perf_counter()
-            intersectors[name].intersect(origins, directions)
+            query(intersectors[name], len(origins))
             seconds[name].append(time.perf_counter() - started)
     return seconds
 
@@ -147,6 +153,22 @@ def timing_ray_sets(scene, profile) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     }
 
 
+def time_occlusion(scene, trees: dict, embree, profile) -> dict[str, float]:
+    """Shadow-ray (any-hit) speed of both trees and Embree.
+
+    The rays run from surface points to points on the lights (:func:`kdtrace.rays.shadow_rays`,
+    ``timing_rays`` of them); their answers are checked against Embree by the agreement
+    columns (the ``shadow`` ray kind of :func:`references.agreement.check_scene`).
+    Returns ``occlusion_mrays_{naive,local,embree}`` and ``occlusion_local_over_embree``.
+    """
+    origins, directions, tmax = shadow_rays(scene, profile.timing_rays, profile.seed + 1)
+    seconds = interleaved_seconds({**trees, "embree": embree}, origins, directions, tmax=tmax)
+    row = {f"occlusion_mrays_{label}": len(origins) / statistics.median(timings) / 1e6
+           for label, timings in seconds.items()}
+    row["occlusion_local_over_embree"] = paired_speedup(seconds["embree"], seconds["local"])
+    return row
+
+
 def scene_row(name: str, config: Config, profile_name: str, progress: tqdm) -> dict:
     """Measure one scene: tree statistics, throughput of both trees and Embree, frame times, agreement."""
     profile = config.profile(profile_name)
@@ -176,6 +198,9 @@ def scene_row(name: str, config: Config, profile_name: str, progress: tqdm) -> d
             row[f"{kind}_tests_per_ray_{variant}"] = work["tests_per_ray"]
         row[f"{kind}_local_over_naive"] = paired_speedup(seconds["naive"], seconds["local"])
         row[f"{kind}_local_over_embree"] = paired_speedup(seconds["embree"], seconds["local"])
+
+    progress.set_postfix_str(f"{name}: timing occlusion rays")
+    row.update(time_occlusion(scene, trees, embree, profile))
 
     progress.set_postfix_str(f"{name}: frame {profile.frame_width}x{profile.frame_height} {profile.frame_spp} spp")
     with warnings.catch_warnings(record=True) as render_warnings:
@@ -509,12 +534,17 @@ def generate(config: Config, profile_name: str, out_dir: Path, fresh: bool = Fal
             warnings.warn(f"Table 1: reused the build scaling of {scaling_scene} measured {record['measured_at']} "
                           "(--fresh measures again)", ReportNote, stacklevel=2)
         scaling = build_scaling.metrics_of(record)
-    write_outputs(table, config, profile_name, out_dir, extra, build_scaling_scene=scaling_scene)
+    sensitivity_rows, sensitivity_reused = sensitivity.generate(config, profile_name, out_dir, fresh, progress)
+    if sensitivity_reused:
+        warnings.warn(f"Table 1: reused the build-recipe rows of {', '.join(sensitivity_reused)} (--fresh measures again)",
+                      ReportNote, stacklevel=2)
+    write_outputs(table, config, profile_name, out_dir, extra, build_scaling_scene=scaling_scene,
+                  sensitivity=bool(sensitivity_rows))
     if progress:
         print(markdown_table(table))
         if extra:
             print(plugin_markdown(extra))
-    metrics = table_metrics(rows) + plugin_metrics(extra) + scaling
+    metrics = table_metrics(rows) + plugin_metrics(extra) + scaling + sensitivity.metrics_of(sensitivity_rows)
     write_metrics(out_dir, "table1", metrics)
     return metrics
 
@@ -529,6 +559,8 @@ def table_metrics(rows: list[dict]) -> list[Metric]:
                    "Mrays/s local-branch tree / Embree, primary rays of one frame"),
             Metric(f"{prefix}/local_over_embree_incoherent", "ratio", float(row["incoherent_local_over_embree"]),
                    "Mrays/s local-branch tree / Embree, random rays"),
+            Metric(f"{prefix}/local_over_embree_occlusion", "ratio", float(row["occlusion_local_over_embree"]),
+                   "Mrays/s local-branch tree / Embree, shadow rays (any hit) from surfaces to the lights"),
             Metric(f"{prefix}/local_over_naive_frame", "ratio", float(row["frame_local_over_naive"]),
                    "path-traced frame seconds naive / local-branch"),
             Metric(f"{prefix}/unexplained_disagreements", "zero", int(row["unexplained"]),
@@ -573,6 +605,8 @@ def markdown_table(table: pd.DataFrame) -> str:
                                                   f"{row['primary_mrays_embree']:.2f}",
             "incoherent Mrays/s naive/local/Embree": f"{row['incoherent_mrays_naive']:.2f} / {row['incoherent_mrays_local']:.2f} / "
                                                      f"{row['incoherent_mrays_embree']:.2f}",
+            "shadow Mrays/s naive/local/Embree": (f"{row['occlusion_mrays_naive']:.2f} / {row['occlusion_mrays_local']:.2f} / "
+                                                  f"{row['occlusion_mrays_embree']:.2f}"),
             "local nodes / tests per ray, primary": _work(row, "primary"),
             "incoherent": _work(row, "incoherent"),
             "frame s naive/local": _pair(row["frame_seconds_naive"], row["frame_seconds_local"], 3),
@@ -586,7 +620,7 @@ def markdown_table(table: pd.DataFrame) -> str:
 
 
 def write_outputs(table: pd.DataFrame, config: Config, profile_name: str, out_dir: Path,
-                  plugins: list[dict] | None = None, build_scaling_scene: str = "") -> None:
+                  plugins: list[dict] | None = None, build_scaling_scene: str = "", sensitivity: bool = False) -> None:
     """Write table1.md and table1.csv atomically (and with plug-in rows, their section and table1_plugins.csv)."""
     profile = config.profile(profile_name)
     host = machine()
@@ -595,7 +629,8 @@ def write_outputs(table: pd.DataFrame, config: Config, profile_name: str, out_di
         f"Machine: {host['cpu']}, {host['cores']} cores, {host['numba_threads']} numba threads (Embree gets as "
         f"many threads); {host['date']}. Primary rays: one {profile.frame_width}x{profile.frame_height} frame at "
         f"{profile.frame_spp} spp (ray casting only, no shading); incoherent rays: {profile.timing_rays:,} random "
-        f"rays; Mrays/s are medians of {TIMING_ROUNDS} rounds after a warm-up, the three intersectors taking turns in each "
+        f"rays; shadow rays: {profile.timing_rays:,} any-hit rays from surface points to points on the lights; "
+        f"Mrays/s are medians of {TIMING_ROUNDS} rounds after a warm-up, the three intersectors taking turns in each "
         f"round; local/Embree is the median of the per-round ratios. Frame seconds: the path tracer "
         f"(max_depth {config.render.max_depth}, no auxiliary buffers) renders the same "
         f"{profile.frame_width}x{profile.frame_height} {profile.frame_spp} spp frame on each tree, {FRAME_REPEATS} "
@@ -609,6 +644,9 @@ def write_outputs(table: pd.DataFrame, config: Config, profile_name: str, out_di
     if build_scaling_scene:
         text += (f"\nBuild seconds against triangle count, with the fitted slope ({build_scaling_scene}): "
                  "[table1_build.md](table1_build.md).\n")
+    if sensitivity:
+        text += ("\nThe local-branch tree under the paper's build recipe and under ours (reference reduction, memory, "
+                 "local/naive speed): [table1_sensitivity.md](table1_sensitivity.md).\n")
     if plugins:
         text += ("\n## Plug-in accelerators\n\n"
                  "Each plug-in (`kdtrace report --accelerator SPEC`) on the same primary and incoherent rays as our "

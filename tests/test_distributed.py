@@ -219,15 +219,15 @@ def test_table1_rows_measured_on_the_cluster_match_the_in_process_rows(cluster, 
     config = load_config()
     small = dataclasses.replace(config.profile("quick"), scenes=("cbox-empty", "cbox-original"),
                                 agreement_rays_per_kind=2000, timing_rays=2000, frame_width=16, frame_height=16,
-                                frame_spp=1)
+                                frame_spp=1, sensitivity_scenes=())
     config = dataclasses.replace(config, profiles={"tiny": small})
     with warnings_.catch_warnings():
         warnings_.simplefilter("ignore")
         local = {m.name: m.value for m in table1.generate(config, "tiny", tmp_path / "local", progress=False)}
         monkeypatch.setenv(distributed.SCHEDULER_ENV, cluster.scheduler.address)
         remote = {m.name: m.value for m in table1.generate(config, "tiny", tmp_path / "remote", progress=False)}
-    assert local.keys() == remote.keys() and len(local) == 2 * 7  # 7 gated metrics per scene
-    exact = [name for name in local if not name.endswith(("_primary", "_incoherent", "_frame"))]
+    assert local.keys() == remote.keys() and len(local) == 2 * 8  # 8 gated metrics per scene
+    exact = [name for name in local if not name.endswith(("_primary", "_incoherent", "_occlusion", "_frame"))]
     assert {name: remote[name] for name in exact} == {name: local[name] for name in exact}
     assert remote["table1/cbox-original/triangle_references_local"] == 107
     workers = set(cluster.scheduler_info()["workers"])

@@ -41,7 +41,8 @@ def big_and_small_triangles() -> Scene:
 
 @pytest.mark.parametrize("variant", VARIANTS)
 @pytest.mark.parametrize("config", [KDTreeConfig(), KDTreeConfig(clip_triangles=True),
-                                    KDTreeConfig(axis_selection="cycle", min_leaf_size=1)])
+                                    KDTreeConfig(axis_selection="cycle", min_leaf_size=1),
+                                    KDTreeConfig(axis_selection="cycle", split_candidates="centroids", empty_bonus=0.0)])
 def test_closest_hit_matches_oracle(variant, config, big_and_small_triangles):
     scene = big_and_small_triangles
     tree = build_kdtree(scene, variant, config, cache=False)
@@ -124,12 +125,37 @@ def test_presorted_build_is_the_per_node_sorting_build(scene_kind, axis_selectio
     args = (*(np.ascontiguousarray(corners[:, k]) for k in range(3)), ids, lo, hi, config.traversal_cost,
             config.intersection_cost, config.min_leaf_size, max_depth_for(len(ids), config),
             axis_selection == "cycle", config.empty_bonus)
-    reference = kernels.build_naive(*args, False)
+    reference = kernels.build_naive(*args, False, False)
     fast = kernels.build_presorted(*args)
     assert len(reference[0]) > 15  # a tree, not a single leaf
     for expected, got in zip(reference[:6], fast[:6], strict=True):
         np.testing.assert_array_equal(got, expected)
     assert fast[6] == reference[6]
+
+
+def test_centroid_candidates_split_at_centroids_on_the_cycled_axis(big_and_small_triangles):
+    """The paper's recipe (FindPlaneSAH): axis = depth % 3, every plane through a triangle centroid."""
+    from kdtrace._kdtree_build import LEAF
+
+    scene = big_and_small_triangles
+    tree = build_kdtree(scene, "naive", KDTreeConfig(axis_selection="cycle", split_candidates="centroids"), cache=False)
+    centroids = scene.vertices.astype(np.float64)[scene.triangles].mean(axis=1)
+    interior = np.flatnonzero(tree.node_meta != LEAF)
+    assert len(interior) > 10
+    depth = np.zeros(len(tree.node_meta), int)
+    for node in interior:  # children follow their parent in the node array
+        left = tree.node_meta[node] >> 2
+        depth[left] = depth[left + 1] = depth[node] + 1
+        axis = tree.node_meta[node] & 3
+        assert axis == depth[node] % 3
+        assert np.float32(tree.node_split[node]) in set(np.float32(centroids[:, axis]).tolist())
+    bounds = build_kdtree(scene, "naive", KDTreeConfig(axis_selection="cycle"), cache=False)
+    assert not np.array_equal(bounds.node_split, tree.node_split)  # the candidates make a difference
+
+
+def test_unknown_split_candidates_are_refused():
+    with pytest.raises(ValueError, match="split_candidates"):
+        KDTreeConfig(split_candidates="median")
 
 
 @pytest.mark.parametrize("variant", VARIANTS)

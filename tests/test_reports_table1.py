@@ -32,12 +32,14 @@ def test_frame_times_render_both_trees_alike(cbox):
 
 def test_metrics_of_a_row():
     row = {"scene": "s", "primary_local_over_embree": 0.5, "incoherent_local_over_embree": 0.25,
-           "frame_local_over_naive": 1.1, "unexplained": 0, "wrong": 0, "agreement_rays": 10, "naive_triangle_references": 12,
+           "occlusion_local_over_embree": 0.75, "frame_local_over_naive": 1.1, "unexplained": 0, "wrong": 0,
+           "agreement_rays": 10, "naive_triangle_references": 12,
            "local_triangle_references": 9}
     metrics = {m.name: m for m in table1.table_metrics([row])}
     assert {name: (m.kind, m.value) for name, m in metrics.items()} == {
         "table1/s/local_over_embree_primary": ("ratio", 0.5),
         "table1/s/local_over_embree_incoherent": ("ratio", 0.25),
+        "table1/s/local_over_embree_occlusion": ("ratio", 0.75),
         "table1/s/local_over_naive_frame": ("ratio", 1.1),
         "table1/s/unexplained_disagreements": ("zero", 0),
         "table1/s/wrong_hits": ("zero", 0),
@@ -65,6 +67,28 @@ def test_intersectors_take_turns_in_rotated_order():
     seconds = table1.interleaved_seconds({n: _Recorder(n, calls) for n in "abc"}, rays, rays, rounds=4)
     assert calls == list("abc" "bca" "cab" "abc")
     assert {n: len(s) for n, s in seconds.items()} == {"a": 4, "b": 4, "c": 4}
+
+
+def test_occlusion_is_timed_with_shadow_rays_and_their_lengths(cbox):
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    scene, trees = cbox
+    lengths = []
+
+    class Embree:
+        def occluded(self, origins, directions, tmax):
+            lengths.append(np.asarray(tmax))
+            return trees["local"].occluded(origins, directions, tmax)
+
+    row = table1.time_occlusion(scene, trees, Embree(), SimpleNamespace(timing_rays=500, seed=3))
+    assert set(row) == {"occlusion_mrays_naive", "occlusion_mrays_local", "occlusion_mrays_embree",
+                        "occlusion_local_over_embree"}
+    assert all(value > 0 for value in row.values())
+    # every timed call gets the segment lengths (a shadow ray without them would hit the light)
+    full = [t for t in lengths if t.size == 500]
+    assert len(full) == table1.TIMING_ROUNDS and all(np.isfinite(t).all() and (t > 0).all() for t in full)
 
 
 def test_paired_speedup_is_the_median_of_round_ratios():
