@@ -307,7 +307,7 @@ def generate(config: Config, profile_name: str, out_dir: str | Path, fresh: bool
     result = None
     if not fresh and cached.is_file():
         result = json.loads(cached.read_text())
-        warnings.warn(f"scale-out: reused the measurement of {result['provenance'].get('date', '?')} "
+        warnings.warn(f"scale-out: reused the measurement of {result['provenance']['machine']['date']} "
                       f"({cached}; --fresh measures again)", ReportNote, stacklevel=2)
     if result is None:
         throughput = measure_throughput(settings["scene"], dataset_profile, (1, 2), progress, config.distributed)
