@@ -208,6 +208,8 @@ def build_naive(v0, v1, v2, triangle_ids, root_min, root_max, k_t, k_i, min_leaf
     poly_b = np.empty((12, 3))
     bmin = np.empty(3)
     bmax = np.empty(3)
+    # Every triangle's centroid, once (the paper's split candidates), not per node and axis.
+    centroid = (v0 + v1 + v2) / 3.0 if centroids else np.empty((0, 3))
     depth_reached = 0
 
     while sp > 0:
@@ -251,11 +253,7 @@ def build_naive(v0, v1, v2, triangle_ids, root_min, root_max, k_t, k_i, min_leaf
                 planar = np.sort(tri_min[:n, axis][flat])
                 candidates = np.empty(0)
                 if centroids:
-                    candidates = np.empty(n)
-                    for k in range(n):
-                        t = work[start + k]
-                        candidates[k] = (v0[t, axis] + v1[t, axis] + v2[t, axis]) / 3.0
-                    candidates.sort()
+                    candidates = np.sort(centroid[work[start:end], axis])
                 cost, pos = _best_split_on_axis(lo, hi, planar, n, bmin, bmax, axis, area, k_t, k_i, empty_bonus,
                                                 candidates)
                 if cost < best_cost:
