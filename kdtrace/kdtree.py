@@ -21,6 +21,7 @@ import numba
 import numpy as np
 
 from kdtrace import _kdtree_build as build_kernels
+from kdtrace import _kdtree_layout as layout_kernels
 from kdtrace import _kdtree_traverse as traverse_kernels
 from kdtrace.cache import cache_root, content_key, load_npz, save_npz
 from kdtrace.config import DEFAULT_CONFIG, KDTreeConfig
@@ -75,9 +76,8 @@ class KDTree:
         self.refs = arrays["refs"]
         lo, hi = scene.bounds
         self.box = np.concatenate([lo, hi])
-        # Traversal copies: one node in 16 contiguous bytes, one triangle in 36.
-        self.packed_nodes = np.ascontiguousarray(np.stack(
-            [self.node_meta, self.node_split.view(np.int32), self.node_start, self.node_count], axis=1))
+        # Traversal copies: 8-byte nodes in cache-line blocks, one triangle in 36 bytes.
+        self.packed_nodes = traversal_nodes(self.node_meta, self.node_split, self.node_start, self.node_count)
         self.corners = np.ascontiguousarray(scene.vertices[scene.triangles].reshape(-1, 9))
         self.last_counters: TraceCounters | None = None
 
@@ -140,6 +140,33 @@ class KDTree:
         """
         t, _, _, _ = self._trace(origins, directions, tmin, tmax, True)
         return np.isfinite(t)
+
+
+def traversal_nodes(node_meta, node_split, node_start, node_count) -> np.ndarray:
+    """The traversal array of a tree (:mod:`kdtrace._kdtree_layout`), 64-byte aligned.
+
+    Parameters
+    ----------
+    node_meta, node_split, node_start, node_count : (N,) arrays
+        The build's node arrays (``meta = left << 2 | axis`` or ``LEAF``, float32 split,
+        first reference and reference count).
+
+    Returns
+    -------
+    (2 M, 2) int32 array, M >= N a multiple of 8 (padding slots are empty leaves)
+    """
+    if len(node_meta) >= layout_kernels.MAX_NODES or (len(node_count) and node_count.max() >= layout_kernels.MAX_COUNT):
+        raise ValueError(f"a tree of {len(node_meta):,} nodes or a node of more than {layout_kernels.MAX_COUNT:,} "
+                         f"triangles does not fit the 8-byte traversal node")
+    new_index, n_slots = layout_kernels.blocked_order(node_meta)
+    packed = layout_kernels.pack_nodes(node_meta, np.ascontiguousarray(node_split, np.float32).view(np.int32),
+                                       node_start, node_count, new_index, n_slots)
+    # Align to a cache line so each block of eight nodes is one line.
+    buffer = np.empty(packed.nbytes + 64, np.uint8)
+    offset = (-buffer.ctypes.data) % 64
+    aligned = buffer[offset:offset + packed.nbytes].view(np.int32).reshape(packed.shape)
+    aligned[...] = packed
+    return aligned
 
 
 def validate_rays(origins, directions, tmin=0.0, tmax=np.inf):

@@ -31,7 +31,7 @@ from pathlib import Path
 import numba
 import numpy as np
 
-from kdtrace import _kdtree_build, _kdtree_traverse
+from kdtrace import _kdtree_build, _kdtree_layout, _kdtree_traverse
 from kdtrace import _render_kernels as kernels
 from kdtrace.cache import source_fingerprint
 from kdtrace.config import DEFAULT_CONFIG
@@ -240,7 +240,7 @@ def _pack(scene: Scene, tree: KDTree) -> dict[str, np.ndarray]:
 def renderer_fingerprint() -> str:
     """Digest of the source of the tree builder, the traversal, the path tracer and this
     module: part of the key of every cached timing of them (:func:`kdtrace.cache.source_fingerprint`)."""
-    return source_fingerprint(_kdtree_build, _kdtree_traverse, kernels, sys.modules[__name__])
+    return source_fingerprint(_kdtree_build, _kdtree_layout, _kdtree_traverse, kernels, sys.modules[__name__])
 
 
 def tile_stride(tiles: int) -> int:

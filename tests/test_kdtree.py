@@ -7,6 +7,8 @@ import warnings
 import numpy as np
 import pytest
 
+from kdtrace._kdtree_build import LEAF
+from kdtrace._kdtree_layout import HAS_TRIANGLES, LINE_NODES
 from kdtrace.config import KDTreeConfig
 from kdtrace.kdtree import VARIANTS, build_kdtree
 from kdtrace.oracle import intersect_brute_force
@@ -170,6 +172,44 @@ def test_statistics_are_consistent(variant, big_and_small_triangles):
     assert set(tree.refs.tolist()) == set(range(len(big_and_small_triangles.triangles)))
     if variant == "naive":
         assert stats["interior_references"] == 0
+
+
+@pytest.mark.parametrize("variant", VARIANTS)
+def test_traversal_layout_is_the_built_tree_in_cache_line_blocks(variant, big_and_small_triangles):
+    """The 8-byte blocked traversal array decodes to the build's tree, node for node."""
+    tree = build_kdtree(big_and_small_triangles, variant, cache=False)
+    packed = tree.packed_nodes
+    assert packed.ctypes.data % 64 == 0 and packed.shape[0] % (2 * LINE_NODES) == 0
+    n_slots = packed.shape[0] // 2
+    word, second = packed[:n_slots, 0], packed[:n_slots, 1]
+    # Walk both trees together from the roots: same splits, same triangles, same shape.
+    slot_of = {0: 0}
+    paths = []  # (distinct cache lines, nodes) of every root-to-leaf path
+    stack = [(0, 0, frozenset(), 0)]
+    while stack:
+        node, slot, lines, depth = stack.pop()
+        lines, depth = lines | {slot // LINE_NODES}, depth + 1
+        start, count = tree.node_start[node], tree.node_count[node]
+        if tree.node_meta[node] == LEAF:
+            assert word[slot] & 3 == LEAF and word[slot] >> 2 == count and (count == 0 or second[slot] == start)
+            paths.append((len(lines), depth))
+            continue
+        assert word[slot] & 3 == tree.node_meta[node] & 3
+        assert second[slot:slot + 1].view(np.float32)[0] == tree.node_split[node]
+        assert bool(word[slot] & HAS_TRIANGLES) == (count > 0)
+        if count:
+            assert tuple(packed[n_slots + slot]) == (start, count)
+        left, left_slot = tree.node_meta[node] >> 2, word[slot] >> 3
+        assert left_slot % 2 == 0  # a sibling pair is 16 aligned bytes
+        slot_of[left], slot_of[left + 1] = left_slot, left_slot + 1
+        stack += [(left, left_slot, lines, depth), (left + 1, left_slot + 1, lines, depth)]
+    assert sorted(slot_of) == list(range(len(tree.node_meta)))
+    assert len(set(slot_of.values())) == len(slot_of)  # one slot per node
+    padding = np.setdiff1d(np.arange(n_slots), list(slot_of.values()))
+    assert np.all(word[padding] == LEAF)  # empty leaves
+    # Locality: a root-to-leaf path reads about one cache line per two levels.
+    lines, depths = np.array(paths).T
+    assert depths.mean() > 6 and lines.mean() <= 0.6 * depths.mean()
 
 
 def test_cache_hit_returns_identical_tree(tmp_path, monkeypatch):
