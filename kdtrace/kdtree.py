@@ -96,8 +96,8 @@ class KDTree:
         # Several chunks per thread balance the load; a chunk owns one traversal stack.
         n_chunks = max(1, min(n, 16 * numba.get_num_threads()))
         traverse_kernels.trace_batch(
-            self.packed_nodes, self.packed_nodes.view(np.float32), self.refs, self.box, self.corners, origins, directions, tmin, tmax,
-            any_hit, self.watertight, n_chunks, out_t, out_tri, out_u, out_v, visited, tests,
+            self.packed_nodes.reshape(-1), self.packed_nodes.view(np.float32).reshape(-1), self.refs, self.box,
+            self.corners, origins, directions, tmin, tmax, any_hit, self.watertight, n_chunks, out_t, out_tri, out_u, out_v, visited, tests,
         )
         self.last_counters = TraceCounters(visited, tests)
         return out_t, out_tri, out_u, out_v
