@@ -22,6 +22,35 @@ def cpu_model() -> str:
     return platform.processor() or "unknown"
 
 
+#: Vector extensions that change results, widest first: bfloat16 support decides whether the
+#: networks train under bf16 autocast, and the ISA which kernels Embree and oneDNN pick.
+_ISA_TIERS = (("amx", ("amx_tile", "amx_bf16")), ("avx512-bf16", ("avx512f", "avx512_bf16")),
+              ("avx512", ("avx512f",)), ("avx2", ("avx2",)))
+
+
+def isa_tier(flags: set[str]) -> str:
+    """The widest tier of :data:`_ISA_TIERS` whose flags (``/proc/cpuinfo`` names) are all in
+    ``flags``; ``"generic"`` when none is."""
+    return next((tier for tier, needed in _ISA_TIERS if flags.issuperset(needed)), "generic")
+
+
+def cpu_isa() -> str:
+    """This CPU's vector tier (:func:`isa_tier` of its ``/proc/cpuinfo`` flags; ``"generic"`` off Linux)."""
+    try:
+        with open("/proc/cpuinfo") as handle:
+            flags = next((set(line.split(":", 1)[1].split()) for line in handle if line.startswith("flags")), set())
+    except OSError:
+        flags = set()
+    return isa_tier(flags)
+
+
+def cpu_kind() -> str:
+    """CPU model and vector tier, e.g. ``"AMD EPYC [avx2]"``: one machine kind for the gate's
+    baselines. The model name alone is not enough: VMs sold as "AMD EPYC" come with and
+    without AVX-512 (2026-12-02), and they train the networks differently (bf16 or fp32)."""
+    return f"{cpu_model()} [{cpu_isa()}]"
+
+
 def package_versions() -> dict[str, str]:
     """Installed versions of the packages results depend on ("absent" when missing)."""
     versions = {}
@@ -34,11 +63,12 @@ def package_versions() -> dict[str, str]:
 
 
 def machine() -> dict[str, object]:
-    """CPU model, logical cores, numba threads, OS, Python and the UTC date."""
+    """CPU model and vector tier, logical cores, numba threads, OS, Python and the UTC date."""
     import numba
 
     return {
         "cpu": cpu_model(),
+        "cpu_isa": cpu_isa(),
         "cores": os.cpu_count(),
         "numba_threads": numba.get_num_threads(),
         "platform": platform.platform(),

@@ -30,14 +30,16 @@ The baseline file is sorted, indented JSON of ``{"cpu": ..., "profile": ..., "me
 {name: {"kind", "value", "note"}}}`` with ratios rounded to 4 significant digits, so that
 its diff after ``kdtrace update-baseline`` shows exactly what changed.
 
-One baseline per CPU model. Training the networks with fixed seeds reproduces its PSNRs
-on one CPU model (within 0.005 dB on an Intel Xeon), not across models: an AMD EPYC run
-of the same commit, with bit-identical renders, trained to PSNRs 3.5 dB lower to 0.6 dB
-higher than the Xeon baseline (2026-12-01). So ``reports/baseline/PROFILE.SLUG.json``,
-recorded on the CPU model whose name gives ``SLUG`` (:func:`cpu_slug`), is used when it
-exists for the machine's CPU, and ``PROFILE.json`` (whose ``cpu`` says where it was
-recorded) otherwise; ``update-baseline`` writes the machine's own file when
-``PROFILE.json`` was recorded on another model.
+One baseline per machine kind (:func:`kdtrace.provenance.cpu_kind`: CPU model and vector
+tier). Training the networks with fixed seeds reproduces its PSNRs on one kind (within
+0.005 dB on an Intel Xeon), not across kinds: an AMD EPYC run of the same commit, with
+bit-identical renders, trained to PSNRs 3.5 dB lower to 0.6 dB higher than the Xeon
+baseline (2026-12-01), and "AMD EPYC" VMs come with AVX-512 and bf16 or with AVX2 only
+(fp32 training, other Embree kernels). So ``reports/baseline/PROFILE.SLUG.json``, recorded
+on the kind whose name gives ``SLUG`` (:func:`cpu_slug`), is used when it exists for the
+machine, and ``PROFILE.json`` (whose ``cpu`` says where it was recorded) otherwise;
+``update-baseline`` writes the machine's own file when ``PROFILE.json`` was recorded on
+another kind.
 """
 
 from __future__ import annotations
@@ -54,7 +56,7 @@ from tabulate import tabulate
 
 from kdtrace.cache import atomic_write_bytes
 from kdtrace.config import GateConfig
-from kdtrace.provenance import cpu_model
+from kdtrace.provenance import cpu_kind
 from reports.metrics import Metric, read_metrics
 
 #: Where the committed baselines live, one ``PROFILE.json`` each.
@@ -127,7 +129,7 @@ def read_run(out_dir: str | Path) -> dict[str, Metric]:
 
 
 def cpu_slug(cpu: str) -> str:
-    """File-name form of a CPU model name: ``"AMD EPYC"`` -> ``"amd-epyc"``."""
+    """File-name form of a machine kind: ``"AMD EPYC [avx2]"`` -> ``"amd-epyc-avx2"``."""
     return re.sub(r"[^a-z0-9]+", "-", cpu.lower()).strip("-")
 
 
@@ -324,12 +326,12 @@ def run_gate(out_dir: str | Path, profile_name: str, config: GateConfig, baselin
     (bool, str)
         Whether the gate passed, and the text it printed into ``gate.md`` (table and summary).
     """
-    path = Path(baseline) if baseline is not None else baseline_path(profile_name, cpu=cpu_model())
+    path = Path(baseline) if baseline is not None else baseline_path(profile_name, cpu=cpu_kind())
     verdicts = compare(read_baseline(path), read_run(out_dir), config, skip)
     passed = not any(v.failed for v in verdicts)
     recorded = baseline_cpu(path)
     text = (f"# Regression gate ({profile_name})\n\nBaseline: `{path}` (recorded on {recorded or 'an unrecorded CPU'}; "
-            f"this machine: {cpu_model()}). Ratio tolerance {config.ratio_tolerance:.0%} "
+            f"this machine: {cpu_kind()}). Ratio tolerance {config.ratio_tolerance:.0%} "
             f"unless overridden ({config.ratio_tolerances or 'no overrides'}); PSNR tolerance "
             f"{config.psnr_tolerance_db} dB.\n\n{format_table(verdicts)}\n\n{summary(verdicts)}\n")
     atomic_write_bytes(Path(out_dir) / "gate.md", text.encode())
@@ -348,7 +350,7 @@ def update_baseline(out_dir: str | Path, profile_name: str, baseline: str | Path
         The baseline written, and a one-line account of what changed (added, removed,
         changed metrics) against the previous baseline.
     """
-    cpu = cpu_model()
+    cpu = cpu_kind()
     if baseline is not None:
         path = Path(baseline)
     else:

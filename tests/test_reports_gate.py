@@ -8,6 +8,7 @@ import json
 import pytest
 
 from kdtrace.config import GateConfig
+from kdtrace.provenance import isa_tier
 from reports import gate
 from reports.metrics import Metric, write_metrics
 
@@ -171,25 +172,35 @@ def test_gate_config_validates_and_matches_overrides():
         GateConfig(psnr_tolerance_db=-1.0)
 
 
-def test_each_cpu_model_gets_its_own_baseline(tmp_path, monkeypatch):
-    """Fixed-seed training reproduces on one CPU model only: the gate reads, and update-baseline
-    writes, the machine's own PROFILE.SLUG.json once PROFILE.json was recorded on another model."""
+def test_each_machine_kind_gets_its_own_baseline(tmp_path, monkeypatch):
+    """Fixed-seed training reproduces on one machine kind only: the gate reads, and update-baseline
+    writes, the machine's own PROFILE.SLUG.json once PROFILE.json was recorded on another kind."""
     out = tmp_path / "run"
     write_metrics(out, "t", BASELINE.values())
     monkeypatch.setattr(gate, "BASELINE_DIR", tmp_path)
-    monkeypatch.setattr(gate, "cpu_model", lambda: "Intel(R) Xeon(R) Processor")
+    monkeypatch.setattr(gate, "cpu_kind", lambda: "Intel(R) Xeon(R) Processor [amx]")
     path, _ = gate.update_baseline(out, "quick")
-    assert path == tmp_path / "quick.json" and gate.baseline_cpu(path) == "Intel(R) Xeon(R) Processor"
+    assert path == tmp_path / "quick.json" and gate.baseline_cpu(path) == "Intel(R) Xeon(R) Processor [amx]"
 
-    monkeypatch.setattr(gate, "cpu_model", lambda: "AMD EPYC")
-    assert gate.baseline_path("quick", cpu="AMD EPYC") == tmp_path / "quick.json"  # none of its own yet
+    monkeypatch.setattr(gate, "cpu_kind", lambda: "AMD EPYC [avx2]")
+    assert gate.baseline_path("quick", cpu="AMD EPYC [avx2]") == tmp_path / "quick.json"  # none of its own yet
     write_metrics(out, "t", _changed("t/a/refs", 1200).values())
     passed, report = gate.run_gate(out, "quick", CONFIG)
-    assert not passed and "recorded on Intel(R) Xeon(R) Processor; this machine: AMD EPYC" in report
+    assert not passed and "recorded on Intel(R) Xeon(R) Processor [amx]; this machine: AMD EPYC [avx2]" in report
     path, note = gate.update_baseline(out, "quick")
-    assert path == tmp_path / "quick.amd-epyc.json" and "(new baseline)" in note
+    assert path == tmp_path / "quick.amd-epyc-avx2.json" and "(new baseline)" in note
     assert gate.read_baseline(tmp_path / "quick.json")["t/a/refs"].value == 1000  # the Xeon one is kept
-    assert gate.baseline_path("quick", cpu="AMD EPYC") == path
+    assert gate.baseline_path("quick", cpu="AMD EPYC [avx2]") == path
     passed, report = gate.run_gate(out, "quick", CONFIG)
-    assert passed and "quick.amd-epyc.json" in report
+    assert passed and "quick.amd-epyc-avx2.json" in report
     assert gate.cpu_slug("Intel(R) Xeon(R) Processor") == "intel-r-xeon-r-processor"
+
+
+def test_machine_kind_names_the_vector_tier():
+    """Same model name, other ISA: another kind (bf16 training or fp32, other Embree kernels)."""
+    assert isa_tier({"avx2", "avx512f", "avx512_bf16", "amx_tile", "amx_bf16"}) == "amx"
+    assert isa_tier({"avx2", "avx512f", "avx512_bf16"}) == "avx512-bf16"
+    assert isa_tier({"avx2", "avx512f"}) == "avx512"
+    assert isa_tier({"sse4_2", "avx2"}) == "avx2"
+    assert isa_tier({"sse4_2"}) == isa_tier(set()) == "generic"
+    assert gate.cpu_slug("AMD EPYC [avx512-bf16]") == "amd-epyc-avx512-bf16"
