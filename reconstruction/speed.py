@@ -163,6 +163,30 @@ def time_denoise(model: nn.Module, frame: Frame, option: str = "fp32", repeats: 
             "pixels": shape[0] * shape[1]}
 
 
+def full_resolution_gflop(model: nn.Module, pixels: int) -> float:
+    """Arithmetic of a network whose every convolution runs at the output's resolution, GFLOP.
+
+    Each weight is one multiply-add per output pixel (2 FLOP); true for the superresolution
+    net of §5.1 (four 'same' convolutions on the upsampled image), not for the denoiser's
+    U-Net. Biases and ReLUs are left out (under 0.2% here).
+    """
+    macs = sum(layer.weight.numel() for layer in model.modules() if isinstance(layer, nn.Conv2d))
+    return 2.0 * macs * pixels / 1e9
+
+
+def matmul_gflops(option: str = "fp32", size: int = 2048, repeats: int = 3) -> float:
+    """This machine's dense matrix-multiply rate in GFLOP/s, in the precision of ``option``.
+
+    A ``size``-square ``torch`` matmul (oneDNN/MKL, as near peak as this CPU gets from
+    PyTorch) under bf16 autocast when ``option`` uses bf16; the same threads as the networks.
+    Used as the attainable rate: a network of G GFLOP cannot run in under G / rate seconds.
+    """
+    a, b = torch.rand(size, size), torch.rand(size, size)
+    with torch.inference_mode(), torch.autocast("cpu", dtype=torch.bfloat16, enabled="bf16" in option):
+        seconds, _ = median_seconds(lambda: a @ b, repeats)
+    return 2.0 * size**3 / seconds / 1e9
+
+
 def time_superres(model: nn.Module, image: np.ndarray, option: str = "fp32", repeats: int = 3,
                   warmup: int = 1) -> dict[str, float]:
     """Seconds of our 2x superresolution (mode ``option``) and of bicubic upsampling of ``image``.
@@ -175,7 +199,10 @@ def time_superres(model: nn.Module, image: np.ndarray, option: str = "fp32", rep
     -------
     dict
         ``ours_seconds``, ``bicubic_seconds``, ``bicubic_over_ours`` (higher: ours faster),
-        ``ours_consistency_psnr``, ``bicubic_consistency_psnr``, ``output_pixels``.
+        ``ours_consistency_psnr``, ``bicubic_consistency_psnr``, ``output_pixels``;
+        ``ours_gflop`` (the network's arithmetic per frame), ``ours_gflops`` (its achieved
+        rate), ``matmul_gflops`` (:func:`matmul_gflops` in the same mode, same run) and
+        ``floor_seconds`` = ``ours_gflop / matmul_gflops``, the fastest this network can be here.
     """
     from reconstruction.baselines import bicubic
     from reconstruction.evaluate import downsample_2x
@@ -185,7 +212,10 @@ def time_superres(model: nn.Module, image: np.ndarray, option: str = "fp32", rep
     ours_seconds, ours = median_seconds(lambda: superresolve(model, image, runner=runner), repeats, warmup)
     bicubic_seconds, theirs = median_seconds(lambda: bicubic(image), repeats, warmup)
     shape = (2 * image.shape[0], 2 * image.shape[1], 3)
+    gflop, rate = full_resolution_gflop(model, shape[0] * shape[1]), matmul_gflops(option)
     return {"ours_seconds": ours_seconds, "bicubic_seconds": bicubic_seconds,
+            "ours_gflop": gflop, "ours_gflops": gflop / ours_seconds, "matmul_gflops": rate,
+            "floor_seconds": gflop / rate,
             "bicubic_over_ours": bicubic_seconds / ours_seconds,
             "ours_consistency_psnr": metrics.psnr(downsample_2x(_checked(ours, shape, "ours")), image),
             "bicubic_consistency_psnr": metrics.psnr(downsample_2x(_checked(theirs, shape, "bicubic")), image),

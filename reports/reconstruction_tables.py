@@ -454,6 +454,8 @@ def _table6(m: dict) -> list[dict]:
                      "superres_option": t["superres_option"], "superres_output": f"{2 * width}x{2 * height}",
                      "ours_superres_s": t["superres"]["ours_seconds"], "bicubic_s": t["superres"]["bicubic_seconds"],
                      "bicubic_over_ours": t["superres"]["bicubic_over_ours"],
+                     "superres_gflop": t["superres"]["ours_gflop"], "superres_gflops": t["superres"]["ours_gflops"],
+                     "matmul_gflops": t["superres"]["matmul_gflops"], "superres_floor_s": t["superres"]["floor_seconds"],
                      "paper_denoise_s": paper.get("denoise_seconds"), "paper_superres_s": paper.get("superres_seconds"),
                      "threads": t["threads"]})
     return rows
@@ -531,7 +533,10 @@ _TITLES = {
                "reference; seconds are medians of 3 calls after a warm-up, torch threads as listed, OIDN on its own "
                "threads; PSNR against the reference checks what was timed. Options: the fast-inference mode chosen "
                "(a faster mode only if PSNR changes by at most 0.05 dB). Paper seconds: Keras on the paper's CPU, "
-               "512 -> 1024; only ratios compare across machines."),
+               "512 -> 1024; only ratios compare across machines. Superresolution arithmetic: superres_gflop is "
+               "the network's work per output frame (2 FLOP per weight and output pixel), superres_gflops its "
+               "achieved rate, matmul_gflops this machine's dense matmul rate in the same mode and run, and "
+               "superres_floor_s their quotient: no implementation of the paper's network is faster on this CPU."),
     "quality": ("Reconstruction quality on the test views (PSNR, dB)",
                 "Denoising: noisy input / our per-scene model / the mixed model / OIDN (albedo and normal); "
                 "superresolution 2x: bicubic / Lanczos / ours. Paper figures from Tables 2 and 3."),

@@ -7,7 +7,7 @@ import pytest
 import torch
 from scipy.ndimage import gaussian_laplace
 
-from reconstruction import hdr
+from reconstruction import hdr, speed
 from reconstruction.inference import (
     DENOISER_HALO,
     SUPERRESOLUTION_HALO,
@@ -261,3 +261,12 @@ def test_fast_inference_decision_respects_the_psnr_limit(denoiser):
     assert strict.chosen == "fp32"
     with pytest.raises(ValueError, match="unknown option"):
         make_runner(denoiser, "fp8")
+
+
+def test_superresolution_arithmetic_and_its_floor_on_this_machine(sr_net):
+    """The §5.1 net costs 2 FLOP per weight and output pixel: 79 GFLOP for a 1024x1024 frame."""
+    weights = sum(layer.weight.numel() for layer in sr_net.layers)
+    assert weights == 37_696  # 37,793 parameters minus 97 biases
+    assert speed.full_resolution_gflop(sr_net, 1024 * 1024) == pytest.approx(2 * 37_696 * 1024**2 / 1e9)
+    rate = speed.matmul_gflops("fp32", size=256, repeats=1)
+    assert np.isfinite(rate) and rate > 0.1  # even one slow core does 0.1 GFLOP/s
