@@ -37,7 +37,7 @@ import pandas as pd
 from tabulate import tabulate
 from tqdm import tqdm
 
-from kdtrace import _kdtree_build, _kdtree_traverse
+from kdtrace import _kdtree_build, _kdtree_layout, _kdtree_traverse
 from kdtrace.cache import atomic_write_bytes, content_key, source_fingerprint
 from kdtrace.config import Config, KDTreeConfig
 from kdtrace.kdtree import VARIANTS, build_kdtree
@@ -60,7 +60,7 @@ def recipes(config: Config) -> dict[str, KDTreeConfig]:
 
 def _key(name: str, config: Config, profile_name: str) -> str:
     profile = config.profile(profile_name)
-    return content_key("table1-sensitivity", ROW_VERSION, source_fingerprint(_kdtree_build, _kdtree_traverse), name,
+    return content_key("table1-sensitivity", ROW_VERSION, source_fingerprint(_kdtree_build, _kdtree_layout, _kdtree_traverse), name,
                        {recipe: dataclasses.asdict(c) for recipe, c in recipes(config).items()},
                        [profile.timing_rays, profile.frame_width, profile.frame_height, profile.frame_spp, profile.seed])
 
