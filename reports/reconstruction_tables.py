@@ -549,6 +549,9 @@ def _header(stem: str, m: dict, provenance: dict, reconstruction: Any) -> str:
                        parameters=m["parameters"]["denoiser"],
                        variant_parameters=m["parameters"].get("normal_depth_denoiser", "no"))
     machine = provenance["machine"]
+    from reconstruction.train import resolve_precision
+
+    precision, why = resolve_precision(reconstruction.precision)
     reused = [s for s in m["stages"] if s["reused"]]
     made = [s for s in m["stages"] if not s["reused"]]
     made_list = ", ".join(f"{s['name']} ({s['seconds']:.0f} s)" for s in made)
@@ -559,6 +562,7 @@ def _header(stem: str, m: dict, provenance: dict, reconstruction: Any) -> str:
             f"views, {reconstruction.spp} spp input, {reconstruction.reference} references at "
             f"{reconstruction.reference_spp} spp, {m['epochs']} epochs; kept epochs: "
             + ", ".join(f"{k} {v}" for k, v in m["best_epochs"].items()) + "). "
+            f"Training arithmetic on this machine: {why or precision}. "
             f"Machine: {machine['cpu']}, {machine['cores']} cores; {machine['date']}. {cache}\n\n")
 
 

@@ -48,7 +48,8 @@ def _measurements() -> dict:
                                  "ours_psnr": 30.0, "oidn_psnr": 31.0, "pixels": 65536},
                      "superres": {"ours_seconds": 0.2, "bicubic_seconds": 0.01, "bicubic_over_ours": 0.05,
                                   "ours_consistency_psnr": 45.0, "bicubic_consistency_psnr": 44.0,
-                                  "output_pixels": 262144}}
+                                  "output_pixels": 262144, "ours_gflop": 19.76, "ours_gflops": 98.8,
+                                  "matmul_gflops": 120.0, "floor_seconds": 0.165}}
               for name in SCENES}
     stages = ([{"name": f"dataset {n}", "seconds": 1.0, "reused": True} for n in [*SCENES, UNSEEN]]
               + [{"name": f"denoiser {n}", "seconds": 0.5, "reused": True} for n in SCENES]
@@ -94,6 +95,7 @@ def test_tables_from_measurements(tmp_path):
     table6 = frames["table6"].set_index("scene")
     assert table6.loc["car", "oidn_over_ours"] == pytest.approx(3.0)
     assert table6.loc["car", "paper_denoise_s"] == pytest.approx(1.92)
+    assert table6.loc["car", "superres_floor_s"] == pytest.approx(0.165) and table6.loc["car", "matmul_gflops"] == 120.0
     quality = frames["quality"].set_index("scene")
     assert quality.loc["cbox-sphere", ["noisy", "ours", "mixed", "oidn"]].tolist() == pytest.approx([22, 30, 28.5, 30.5])
     provenance = json.loads((tmp_path / "reconstruction_provenance.json").read_text())
@@ -154,6 +156,10 @@ def test_generate_end_to_end_and_reuse(tmp_path, monkeypatch, shared_scenes):
     print(f"\n[tiny] first run {first:.1f} s, rerun {second:.1f} s")
     table2 = (tmp_path / "out" / "table2.md").read_text()
     assert "Reused from the cache: 8 of 8 datasets and models." in table2
+    from reconstruction.train import resolve_precision
+
+    precision, why = resolve_precision(config.reconstruction.profile("tiny").precision)
+    assert f"Training arithmetic on this machine: {why or precision}." in table2  # an fp32 fallback says why
     variant = pd.read_csv(tmp_path / "out" / "table2.csv").set_index(["scene", "model"]).loc[
         ("cbox-original", "per-scene +normal+depth")]
     assert np.isfinite(variant["test_psnr"]) and variant["noisy_test_psnr"] > 0
