@@ -122,7 +122,9 @@ def _reconstruction_stand_in(config, profile_name, fresh, progress, denoisers=()
     timing = {SCENE: {"threads": 2, "denoise_option": "fp32", "superres_option": "fp32", "decisions": {},
                       "denoise": {"ours_seconds": 0.01, "oidn_seconds": 0.02, "oidn_over_ours": 2.0, "noisy_psnr": 20.0,
                                   "ours_psnr": 28.0, "oidn_psnr": 29.0, "pixels": SIZE * SIZE},
-                      "superres": {"ours_seconds": 0.02, "bicubic_seconds": 0.001, "bicubic_over_ours": 0.05}}}
+                      "superres": {"ours_seconds": 0.02, "bicubic_seconds": 0.001, "bicubic_over_ours": 0.05,
+                                   "ours_gflop": 1.0, "ours_gflops": 50.0, "matmul_gflops": 100.0,
+                                   "floor_seconds": 0.01}}}
     photos = {split: {m: _pooled(30.0) for m in ("bicubic", "lanczos", "ours")} for split in ("train", "validation", "test")}
     m = {"profile": profile_name, "reconstruction_profile": "quick", "scenes": [SCENE], "unseen": "", "far": "",
          "frame": [SIZE, SIZE], "frame_spp": 2, "stages": [{"name": f"denoiser {SCENE}", "seconds": 1.0, "reused": True},
