@@ -78,6 +78,9 @@ class KDTree:
         self.box = np.concatenate([lo, hi])
         # Traversal copies: 8-byte nodes in cache-line blocks, one triangle in 36 bytes.
         self.packed_nodes = traversal_nodes(self.node_meta, self.node_split, self.node_start, self.node_count)
+        # The kernels' flat views of it: int32 words and the same words as float32 splits.
+        self.node_words = self.packed_nodes.reshape(-1)
+        self.node_splits = self.node_words.view(np.float32)
         self.corners = np.ascontiguousarray(scene.vertices[scene.triangles].reshape(-1, 9))
         self.last_counters: TraceCounters | None = None
 
@@ -96,8 +99,8 @@ class KDTree:
         # Several chunks per thread balance the load; a chunk owns one traversal stack.
         n_chunks = max(1, min(n, 16 * numba.get_num_threads()))
         traverse_kernels.trace_batch(
-            self.packed_nodes.reshape(-1), self.packed_nodes.view(np.float32).reshape(-1), self.refs, self.box,
-            self.corners, origins, directions, tmin, tmax, any_hit, self.watertight, n_chunks, out_t, out_tri, out_u, out_v, visited, tests,
+            self.node_words, self.node_splits, self.refs, self.box, self.corners, origins, directions, tmin, tmax,
+            any_hit, self.watertight, n_chunks, out_t, out_tri, out_u, out_v, visited, tests,
         )
         self.last_counters = TraceCounters(visited, tests)
         return out_t, out_tri, out_u, out_v

@@ -10,16 +10,21 @@ from importlib import metadata
 PACKAGES = ("kdtrace", "numpy", "numba", "embreex", "mitsuba", "drjit", "torch", "pyoidn", "scikit-image", "pandas")
 
 
-def cpu_model() -> str:
-    """CPU model name from /proc/cpuinfo (Linux), else ``platform.processor()``."""
+def _cpuinfo(field: str) -> str | None:
+    """The first value of ``field`` in /proc/cpuinfo (None off Linux or when absent)."""
     try:
         with open("/proc/cpuinfo") as handle:
             for line in handle:
-                if line.startswith("model name"):
+                if line.startswith(field):
                     return line.split(":", 1)[1].strip()
     except OSError:
         pass
-    return platform.processor() or "unknown"
+    return None
+
+
+def cpu_model() -> str:
+    """CPU model name from /proc/cpuinfo (Linux), else ``platform.processor()``."""
+    return _cpuinfo("model name") or platform.processor() or "unknown"
 
 
 #: Vector extensions that change results, widest first: bfloat16 support decides whether the
@@ -36,12 +41,7 @@ def isa_tier(flags: set[str]) -> str:
 
 def cpu_isa() -> str:
     """This CPU's vector tier (:func:`isa_tier` of its ``/proc/cpuinfo`` flags; ``"generic"`` off Linux)."""
-    try:
-        with open("/proc/cpuinfo") as handle:
-            flags = next((set(line.split(":", 1)[1].split()) for line in handle if line.startswith("flags")), set())
-    except OSError:
-        flags = set()
-    return isa_tier(flags)
+    return isa_tier(set((_cpuinfo("flags") or "").split()))
 
 
 def cpu_kind() -> str:

@@ -224,7 +224,7 @@ def _pack(scene: Scene, tree: KDTree) -> dict[str, np.ndarray]:
     tri_uv = (scene.texcoords[scene.triangles].reshape(-1, 6) if scene.texcoords is not None
               else np.zeros((1, 6), np.float32))
     return {
-        "nodes": tree.packed_nodes.reshape(-1), "splits": tree.packed_nodes.view(np.float32).reshape(-1), "refs": tree.refs,
+        "nodes": tree.node_words, "splits": tree.node_splits, "refs": tree.refs,
         "box": tree.box, "corners": tree.corners, "watertight": tree.watertight, "tri_mat": scene.material_ids,
         "tri_normals": np.ascontiguousarray(tri_normals), "tri_uv": np.ascontiguousarray(tri_uv),
         "mat_kind": np.array([_KINDS[m.kind] for m in scene.materials], np.int32),
