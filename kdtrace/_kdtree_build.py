@@ -315,12 +315,13 @@ def build_presorted(v0, v1, v2, triangle_ids, root_min, root_max, k_t, k_i, min_
     sweep tries every triangle bound).
     """
     n_tris = v0.shape[0]
-    raw_lo = np.empty((n_tris, 3))
-    raw_hi = np.empty((n_tris, 3))
+    # Axis-major bounds: a node's sweep gathers along one axis, from one 8-byte-per-triangle array.
+    raw_lo = np.empty((3, n_tris))
+    raw_hi = np.empty((3, n_tris))
     for t in range(n_tris):
         for k in range(3):
-            raw_lo[t, k] = min(v0[t, k], v1[t, k], v2[t, k])
-            raw_hi[t, k] = max(v0[t, k], v1[t, k], v2[t, k])
+            raw_lo[k, t] = min(v0[t, k], v1[t, k], v2[t, k])
+            raw_hi[k, t] = max(v0[t, k], v1[t, k], v2[t, k])
     m = triangle_ids.shape[0]
     meta, split, start_of, count_of, area_of = _grow_nodes(np.empty(0, np.int32), np.empty(0, np.float32),
                                                           np.empty(0, np.int32), np.empty(0, np.int32),
@@ -333,8 +334,8 @@ def build_presorted(v0, v1, v2, triangle_ids, root_min, root_max, k_t, k_i, min_
     # above their parent and the top is reset to the popped node's start (LIFO).
     work = np.empty(max(96, 18 * m), np.int32)
     for axis in range(3):
-        work[2 * axis * m:(2 * axis + 1) * m] = triangle_ids[np.argsort(raw_lo[triangle_ids, axis])]
-        work[(2 * axis + 1) * m:(2 * axis + 2) * m] = triangle_ids[np.argsort(raw_hi[triangle_ids, axis])]
+        work[2 * axis * m:(2 * axis + 1) * m] = triangle_ids[np.argsort(raw_lo[axis, triangle_ids])]
+        work[(2 * axis + 1) * m:(2 * axis + 2) * m] = triangle_ids[np.argsort(raw_hi[axis, triangle_ids])]
     st_node, st_depth, st_start, st_end, st_bounds = _build_stack(max_depth, 6 * m, root_min, root_max)
     sp = 1
     bmin = np.empty(3)
@@ -342,6 +343,7 @@ def build_presorted(v0, v1, v2, triangle_ids, root_min, root_max, k_t, k_i, min_
     lo = np.empty(m)
     hi = np.empty(m)
     planar = np.empty(m)
+    side = np.zeros(n_tris, np.uint8)  # bit 0: goes right, bit 1: goes left, of the node being split
     no_candidates = np.empty(0)
     depth_reached = 0
     while sp > 0:
@@ -365,11 +367,11 @@ def build_presorted(v0, v1, v2, triangle_ids, root_min, root_max, k_t, k_i, min_
                 n_planar = 0
                 for i in range(n):
                     t = work[by_lo + i]
-                    lo[i] = max(bmin[axis], raw_lo[t, axis])
-                    if lo[i] == min(bmax[axis], raw_hi[t, axis]):
+                    lo[i] = max(bmin[axis], raw_lo[axis, t])
+                    if lo[i] == min(bmax[axis], raw_hi[axis, t]):
                         planar[n_planar] = lo[i]
                         n_planar += 1
-                    hi[i] = min(bmax[axis], raw_hi[work[by_hi + i], axis])
+                    hi[i] = min(bmax[axis], raw_hi[axis, work[by_hi + i]])
                 cost, pos = _best_split_on_axis(lo[:n], hi[:n], planar[:n_planar], n, bmin, bmax, axis, area,
                                                 k_t, k_i, empty_bonus, no_candidates)
                 if cost < best_cost:
@@ -384,27 +386,29 @@ def build_presorted(v0, v1, v2, triangle_ids, root_min, root_max, k_t, k_i, min_
                                                                        n_nodes, node, best_axis, best_pos)
         n_nodes += 2
         # Stable partition of each list: the right child's lists first (processed last).
+        # Each triangle's side is decided once, from the first list, and looked up by the
+        # six list passes (one byte per triangle instead of two gathered bounds).
         n_right = 0
         n_left = 0
         for i in range(start, start + n):
-            goes_right, goes_left = _sides(raw_lo[work[i], best_axis], raw_hi[work[i], best_axis], best_pos)
+            t = work[i]
+            goes_right, goes_left = _sides(raw_lo[best_axis, t], raw_hi[best_axis, t], best_pos)
             n_right += goes_right
             n_left += goes_left
-        work = _ensure_capacity(work, end + 6 * (n_right + n_left))
+            side[t] = goes_right | (goes_left << 1)
+        # One slot of slack: a list's unconditional store past its last entry lands on the
+        # next list's first slot (written later) or, for the last left list, on the slack.
+        work = _ensure_capacity(work, end + 6 * (n_right + n_left) + 1)
         right_start = end
         left_start = end + 6 * n_right
-        for list_index in range(6):
-            write_right = right_start + list_index * n_right
-            write_left = left_start + list_index * n_left
-            for i in range(start + list_index * n, start + (list_index + 1) * n):
-                t = work[i]
-                goes_right, goes_left = _sides(raw_lo[t, best_axis], raw_hi[t, best_axis], best_pos)
-                if goes_right:
-                    work[write_right] = t
-                    write_right += 1
-                if goes_left:
-                    work[write_left] = t
-                    write_left += 1
+        for bit, child_start, child_n in ((1, right_start, n_right), (2, left_start, n_left)):
+            for list_index in range(6):
+                write = child_start + list_index * child_n
+                for i in range(start + list_index * n, start + (list_index + 1) * n):
+                    t = work[i]
+                    # Store unconditionally, advance by the side bit: no unpredictable branch.
+                    work[write] = t
+                    write += (side[t] & bit) != 0
         sp = _push_children(st_node, st_depth, st_start, st_end, st_bounds, sp, left, depth + 1, best_axis, best_pos,
                             bmin, bmax, right_start, left_start, left_start + 6 * n_left)
     return (meta[:n_nodes].copy(), split[:n_nodes].copy(), start_of[:n_nodes].copy(), count_of[:n_nodes].copy(),

@@ -29,7 +29,7 @@ from kdtrace.scene import Scene
 
 Variant = Literal["naive", "local"]
 VARIANTS: tuple[str, ...] = ("naive", "local")
-BUILDER_VERSION = 2  # 2: the O(N log N) presorted build (same trees; their stats record its seconds)
+BUILDER_VERSION = 3  # 2: the O(N log N) presorted build; 3: its branch-free partition (same trees; stats record the seconds)
 _TREE_ARRAYS = ("node_meta", "node_split", "node_start", "node_count", "refs")
 
 
