@@ -79,6 +79,42 @@ def test_occluded_matches_oracle_with_tmin_tmax(variant, big_and_small_triangles
     np.testing.assert_allclose(t_ours[::20], expected, rtol=1e-9)
 
 
+@pytest.mark.parametrize("variant", VARIANTS)
+def test_any_hit_walks_the_segment_from_its_end(variant):
+    """Any-hit queries visit the far child of a split first: of the occluders along a shadow
+    segment, the kernel reports one in the leaf reached first from tmax, not from the
+    origin. The answer (blocked or not) cannot depend on the order: that is
+    test_occluded_matches_oracle_with_tmin_tmax; here the order itself is checked."""
+    from kdtrace import _kdtree_traverse as kernels
+
+    # Eight small squares across the x axis at x = 1..8 (two triangles each); rays along +x
+    # from x = 0.5 through all of them.
+    squares = []
+    for x in range(1, 9):
+        squares.append([[x, -0.5, -0.5], [x, 0.5, -0.5], [x, 0.5, 0.5]])
+        squares.append([[x, -0.5, -0.5], [x, 0.5, 0.5], [x, -0.5, 0.5]])
+    vertices = np.array(squares, float).reshape(-1, 3)
+    scene = Scene("squares", vertices, np.arange(len(vertices)).reshape(-1, 3), np.zeros(16), [Material("grey")])
+    tree = build_kdtree(scene, variant, cache=False)
+    rng = np.random.default_rng(3)
+    n = 200
+    origins = np.column_stack([np.full(n, 0.5), rng.uniform(-0.4, 0.4, n), rng.uniform(-0.4, 0.4, n)])
+    directions = np.tile([1.0, 0.0, 0.0], (n, 1))
+    out = [np.empty(n), np.empty(n, np.int32), np.empty(n), np.empty(n), np.empty(n, np.int32), np.empty(n, np.int32)]
+    for tmax, last_square in ((9.0, 8), (5.2, 5)):  # the segments end at x = 9.5 and 5.7
+        for any_hit in (False, True):
+            kernels.trace_batch(tree.node_words, tree.node_splits, tree.refs, tree.box, tree.corners, origins,
+                                directions, np.zeros(n), np.full(n, tmax), any_hit, True, 4, *out)
+            square = out[1] // 2 + 1  # triangles 2k and 2k+1 make square k + 1
+            if not any_hit:
+                np.testing.assert_array_equal(square, 1)  # closest hit: the first square
+            else:
+                # The last leaf before tmax: a square lies in its split plane, so it is in the
+                # leaves on both sides, and the leaf reached first from tmax holds the last
+                # square and the one before it. From the origin it would be square 1 or 2.
+                assert np.isin(square, [last_square - 1, last_square]).all(), np.unique(square)
+
+
 def test_local_branch_is_the_naive_tree_with_pull_up(big_and_small_triangles):
     scene = big_and_small_triangles
     naive = build_kdtree(scene, "naive", cache=False)
