@@ -5,6 +5,7 @@ triangles, so the local-branch test (Algorithm 4) costs a single count check the
 Traversal and intersection run in float64 on float32 scene data, front to back with
 an explicit stack; a subtree whose entry distance lies beyond the closest hit so far
 is skipped (the pruning of Algorithm 4, which is also valid for the naive tree).
+Any-hit (shadow) queries walk their segment from its end instead (see :func:`trace_ray`).
 """
 
 from __future__ import annotations
