@@ -287,8 +287,10 @@ def trace_ray(
                 # hit answers the query, so the answer is the same in either order, but a
                 # shadow ray runs from a surface, where the tree is deepest, to a light in
                 # open space, and an occluder is met sooner from the light's side (measured
-                # 1.10-2.78x on Table 1's shadow rays, nodes per ray 82 -> 55 on bunny and
-                # 24 -> 11 on dabrovic-sponza, 2 threads, 2026-12-02).
+                # on Table 1's shadow rays, 2 threads, 2026-12-02: 0.88x on cbox-original,
+                # 1.04-1.25x on cbox-sphere, car and samurai, 1.5x on bunny, 2.0x on Crytek
+                # Sponza, 2.8x on dabrovic; nodes per ray 82 -> 55 on bunny, 24 -> 11.5 on
+                # dabrovic).
                 st_node[sp] = near
                 st_ent[sp] = ent
                 st_ext[sp] = t_plane
