@@ -19,6 +19,7 @@ import pandas as pd
 import pytest
 
 from kdtrace.config import DEFAULT_CONFIG, load_config
+from reconstruction.train import resolve_precision
 from reports import reconstruction_tables as rt
 from reports.metrics import read_metrics
 from reports.paper_figures import TABLE2, TABLE3
@@ -156,8 +157,6 @@ def test_generate_end_to_end_and_reuse(tmp_path, monkeypatch, shared_scenes):
     print(f"\n[tiny] first run {first:.1f} s, rerun {second:.1f} s")
     table2 = (tmp_path / "out" / "table2.md").read_text()
     assert "Reused from the cache: 8 of 8 datasets and models." in table2
-    from reconstruction.train import resolve_precision
-
     precision, why = resolve_precision(config.reconstruction.profile("tiny").precision)
     assert f"Training arithmetic on this machine: {why or precision}." in table2  # an fp32 fallback says why
     variant = pd.read_csv(tmp_path / "out" / "table2.csv").set_index(["scene", "model"]).loc[
