@@ -57,8 +57,10 @@ class KDTree:
         Ray-triangle test of the queries (``KDTreeConfig.triangle_test``).
     stats : dict
         nodes, leaves, empty_leaves, max_depth, triangle_references (leaf + interior),
-        leaf_references, interior_references, sah_cost, tree_bytes, build_seconds,
-        zero_area_triangles, cache_hit.
+        leaf_references, interior_references, sah_cost, tree_bytes (the build's arrays: 17 bytes
+        a node and 4 a reference), traversal_bytes (what the queries read: the 8-byte node
+        array with its cold half, padding slots included, plus the references),
+        build_seconds, zero_area_triangles, cache_hit.
     last_counters : TraceCounters or None
         Work counters of the most recent query.
     """
@@ -68,7 +70,6 @@ class KDTree:
         self.variant = variant
         self.triangle_test = triangle_test
         self.watertight = triangle_test == "watertight"
-        self.stats = stats
         self.node_meta = arrays["node_meta"]
         self.node_split = arrays["node_split"]
         self.node_start = arrays["node_start"]
@@ -81,6 +82,7 @@ class KDTree:
         # The kernels' flat views of it: int32 words and the same words as float32 splits.
         self.node_words = self.packed_nodes.reshape(-1)
         self.node_splits = self.node_words.view(np.float32)
+        self.stats = {**stats, "traversal_bytes": int(self.packed_nodes.nbytes + self.refs.nbytes)}
         self.corners = np.ascontiguousarray(scene.vertices[scene.triangles].reshape(-1, 9))
         self.last_counters: TraceCounters | None = None
 

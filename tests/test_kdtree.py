@@ -203,6 +203,10 @@ def test_statistics_are_consistent(variant, big_and_small_triangles):
     assert stats["nodes"] == 2 * stats["leaves"] - 1
     assert stats["triangle_references"] == len(tree.refs) == stats["leaf_references"] + stats["interior_references"]
     assert stats["tree_bytes"] == sum(a.nbytes for a in (tree.node_meta, tree.node_split, tree.node_start, tree.node_count, tree.refs))
+    # Traversal: 8-byte nodes plus a cold half of the same size, padded to whole 64-byte blocks.
+    slots = len(tree.packed_nodes) // 2
+    assert slots >= stats["nodes"] and slots % 8 == 0
+    assert stats["traversal_bytes"] == 16 * slots + 4 * len(tree.refs)
     assert 0 < stats["max_depth"] <= 8 + 1.3 * np.log2(len(big_and_small_triangles.triangles)) + 1
     # Every non-degenerate triangle is referenced somewhere.
     assert set(tree.refs.tolist()) == set(range(len(big_and_small_triangles.triangles)))
