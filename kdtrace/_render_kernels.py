@@ -285,7 +285,6 @@ def path_sample(
                 lb += bb * sky_rgb[2]
             break
         m = tri_mat[tri]
-        px, py, pz = triangle_point(corners, tri, u, v)
         gx, gy, gz = geometric_normal(corners, tri)
         wx, wy, wz = -dx, -dy, -dz
         # ---- emission seen by this ray (one-sided)
@@ -298,6 +297,12 @@ def path_sample(
                 lr += br * w * mat_emission[m, 0]
                 lg += bg * w * mat_emission[m, 1]
                 lb += bb * w * mat_emission[m, 2]
+        last = max_depth >= 0 and depth + 1 >= max_depth
+        if last and not (aux and depth == 0):
+            # The path ends here and no buffer needs this hit's attributes: skip the shading
+            # normal and the texture lookup (one hit in three at max_depth 3).
+            break
+        px, py, pz = triangle_point(corners, tri, u, v)
         # ---- surface attributes
         sx, sy, sz = gx, gy, gz
         if normals and tri_normals.shape[0] == corners.shape[0]:  # the general kernel may get none
@@ -322,7 +327,7 @@ def path_sample(
             flip = 1.0 if cos_i >= 0.0 else -1.0
             anx, any_, anz = flip * sx, flip * sy, flip * sz
             first_t = t
-        if max_depth >= 0 and depth + 1 >= max_depth:
+        if last:
             break
         base = CAMERA_DIMS + depth * DIMS_PER_BOUNCE
         kind = mat_kind[m] if specular else KIND_DIFFUSE
