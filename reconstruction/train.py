@@ -279,19 +279,11 @@ def resolve_precision(requested: str) -> tuple[str, str]:
 
 
 def _forward(model: nn.Module, inputs: torch.Tensor, precision: str) -> torch.Tensor:
-    """``model(inputs)`` in channels-last layout (under bf16 autocast for ``"bf16"``), returned as
-    contiguous fp32 (the loss runs in fp32).
-
-    Channels-last in fp32 too: one Adam step on an AVX2-only EPYC (no bf16) took 0.017 s instead
-    of 0.025 s for the denoiser on the quick profile's 8 crops of 32x32, 0.016 s instead of 0.035 s
-    for superresolution, and 1.46 s / 1.54 s instead of 1.68 s / 2.00 s on 32 crops of 128x128
-    (2026-12-03, load 0.6-0.8).
-    """
-    inputs = inputs.contiguous(memory_format=torch.channels_last)
+    """``model(inputs)``; under bf16 autocast in channels-last layout, returned as fp32 (the loss runs in fp32)."""
     if precision != "bf16":
-        return model(inputs).contiguous()
+        return model(inputs)
     with torch.autocast("cpu", dtype=torch.bfloat16):
-        prediction = model(inputs)
+        prediction = model(inputs.contiguous(memory_format=torch.channels_last))
     return prediction.float().contiguous()
 
 
@@ -359,7 +351,8 @@ def fit(model: nn.Module, loss_fn: nn.Module, data: dict[str, tuple[torch.Tensor
     inputs, targets = data["train"]
     bar = tqdm(total=epochs, initial=len(history), unit="epoch", desc=f"train {architecture(model)['architecture']}",
                disable=None if progress is None else not progress, leave=False)
-    model.to(memory_format=torch.channels_last)
+    if precision == "bf16":
+        model.to(memory_format=torch.channels_last)
     for epoch in range(len(history) + 1, epochs + 1):
         if patience and epoch - 1 - best["epoch"] >= patience:
             break  # early stopping (also on resume: the history already shows it)
@@ -407,11 +400,10 @@ def _training_dir(kind: str, model: nn.Module, loss_fn: nn.Module, data_hash: st
                   profile: ReconstructionProfile) -> Path:
     # the loss is part of the identity: the same net and data trained on another loss is another model
     loss = getattr(loss_fn, "config", None) or type(loss_fn).__name__
-    # bf16 runs keep their keys (their caches stay valid); fp32 trained in channels-last layout
-    # since 2026-12-03 follows another trajectory than the contiguous fp32 runs before it
+    # fp32 runs keep their pre-precision keys (their caches stay valid); bf16 is another model
     precision = resolve_precision(profile.precision)[0]
     key = content_key(kind, architecture(model), parameter_count(model), loss, data_hash, profile.batch_size,
-                      profile.learning_rate, profile.seed, "bf16" if precision == "bf16" else "fp32-channels-last")
+                      profile.learning_rate, profile.seed, *(["bf16"] if precision == "bf16" else []))
     return cache_root() / "models" / f"{kind}-{key[:24]}"
 
 
