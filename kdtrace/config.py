@@ -52,7 +52,7 @@ class KDTreeConfig:
 
     traversal_cost: float = 1.0
     intersection_cost: float = 5.0
-    min_leaf_size: int = 2
+    min_leaf_size: int = 4
     depth_base: float = 8.0
     depth_log_factor: float = 1.3
     axis_selection: str = "all"
