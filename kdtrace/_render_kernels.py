@@ -415,14 +415,15 @@ def render_tile(
     nodes, splits, refs, box, corners, watertight, tri_mat, tri_normals, tri_uv,
     mat_kind, mat_albedo, mat_emission, mat_ior, mat_tex, tex_pixels, tex_info,
     emit_tri, emit_cdf, tri_emit_pdf, sky_rgb, cam,
-    width, height, spp, max_depth, rr_depth, seed, tile_size, tile, tiles_x,
+    width, height, spp, max_depth, rr_depth, seed, first_sample, tile_size, tile, tiles_x,
     st_node, st_ent, st_ext, ray, out_rgb, out_var, out_albedo, out_normal, out_depth, counts,
 ):
     """Render one tile (index ``tile`` of a row of ``tiles_x``) into the ``out_*`` buffers.
 
     The tile's pixel loops and :func:`path_sample` (inlined) are one function, compiled per
     feature combination; the parallel loop of :func:`render_tiles` calls it once per tile
-    (numba cannot inline into a ``prange`` body).
+    (numba cannot inline into a ``prange`` body). A pixel takes the samples
+    ``first_sample .. first_sample + spp - 1`` of its sequence.
     """
     literally(specular)
     literally(textures)
@@ -458,7 +459,7 @@ def render_tile(
             sum_t = 0.0
             hits = 0
             for s in range(spp):
-                key = sample_key(seed, pixel, s)
+                key = sample_key(seed, pixel, first_sample + s)
                 dx, dy, dz = camera_direction(cam, width, height, i + uniform(key, 0), j + uniform(key, 1))
                 lr, lg, lb, ar, ag, ab, nx, ny, nz, t, shadow, bounce = path_sample(
                     specular, textures, normals, sky, emitters, emitter_selection, aux, watertight,
@@ -508,7 +509,7 @@ def render_tiles(
     nodes, splits, refs, box, corners, watertight, tri_mat, tri_normals, tri_uv,
     mat_kind, mat_albedo, mat_emission, mat_ior, mat_tex, tex_pixels, tex_info,
     emit_tri, emit_cdf, tri_emit_pdf, sky_rgb, cam,
-    width, height, spp, max_depth, rr_depth, seed, tile_size, tile_stride,
+    width, height, spp, max_depth, rr_depth, seed, first_sample, tile_size, tile_stride,
     out_rgb, out_var, out_albedo, out_normal, out_depth, counts,
 ):
     """Render every pixel into the ``out_*`` buffers, in parallel over tiles.
@@ -544,6 +545,6 @@ def render_tiles(
             nodes, splits, refs, box, corners, watertight, tri_mat, tri_normals, tri_uv,
             mat_kind, mat_albedo, mat_emission, mat_ior, mat_tex, tex_pixels, tex_info,
             emit_tri, emit_cdf, tri_emit_pdf, sky_rgb, cam,
-            width, height, spp, max_depth, rr_depth, seed, tile_size, (k * tile_stride) % tiles, tiles_x,
+            width, height, spp, max_depth, rr_depth, seed, first_sample, tile_size, (k * tile_stride) % tiles, tiles_x,
             st_node, st_ent, st_ext, ray, out_rgb, out_var, out_albedo, out_normal, out_depth, counts,
         )

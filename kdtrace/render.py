@@ -256,7 +256,7 @@ def tile_stride(tiles: int) -> int:
     return stride
 
 
-def _run(flags, packed, cam, width, height, spp, max_depth, rr_depth, seed, tile_size, aux):
+def _run(flags, packed, cam, width, height, spp, max_depth, rr_depth, seed, first_sample, tile_size, aux):
     rgb = np.zeros((height, width, 3), np.float32)
     variance = np.zeros((height, width, 3), np.float32)
     shape = (height, width) if aux else (0, 0)
@@ -265,7 +265,7 @@ def _run(flags, packed, cam, width, height, spp, max_depth, rr_depth, seed, tile
     depth = np.zeros(shape, np.float32)
     tiles = -(-width // tile_size) * -(-height // tile_size)
     counts = np.zeros((tiles, 4), np.int64)
-    args = (*flags, *packed.values(), cam, width, height, spp, max_depth, rr_depth, np.uint64(seed), tile_size,
+    args = (*flags, *packed.values(), cam, width, height, spp, max_depth, rr_depth, np.uint64(seed), first_sample, tile_size,
             tile_stride(tiles), rgb, variance, albedo, normal, depth, counts)
     # numba resolves a ``literally`` kernel's argument types anew on every call: 70-100 ms
     # per call, measured 2026-12-02 on cbox-original (more than a whole 256x256 frame at
@@ -293,6 +293,7 @@ def render(
     tile_size: int | None = None,
     camera: Camera | None = None,
     tree: KDTree | None = None,
+    first_sample: int = 0,
 ) -> RenderResult:
     """Path trace ``scene`` from its camera on a KD-tree.
 
@@ -323,6 +324,11 @@ def render(
         Overrides ``scene.camera`` (used by :func:`render_stereo`).
     tree : KDTree, optional
         A tree already built for ``scene`` (saves the build or cache load).
+    first_sample : int
+        Index of the first of the ``spp`` samples every pixel takes from its sequence
+        (default 0). Renders of disjoint sample ranges are independent, and the
+        spp-weighted mean of the ``rgb`` (and ``albedo``) of adjacent ranges is that of
+        the render of their union, up to float rounding.
 
     Returns
     -------
@@ -332,7 +338,7 @@ def render(
     ------
     ValueError
         Non-positive spp, resolution or tile size, a resolution whose image buffers do
-        not fit in memory, bad max_depth or seed, NaN in the camera or a material, or
+        not fit in memory, bad max_depth, seed or first_sample, NaN in the camera or a material, or
         ``features`` missing something the scene needs.
 
     Warns
@@ -350,6 +356,9 @@ def render(
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or not 0 <= seed < 2**64:
         raise ValueError(f"seed must be an integer in [0, 2^64), got {seed!r}")
     tile_size = _positive_int("tile_size", config.tile_size if tile_size is None else tile_size)
+    if isinstance(first_sample, bool) or not isinstance(first_sample, (int, np.integer)) or not 0 <= first_sample < 2**62:
+        raise ValueError(f"first_sample must be an integer in [0, 2^62), got {first_sample!r}")
+    first_sample = int(first_sample)
     camera = scene.camera if camera is None else camera
     _check_camera(camera)
     width = _positive_int("width", camera.width if width is None else width)
@@ -378,11 +387,11 @@ def render(
     rr_depth = config.rr_depth
 
     started = time.perf_counter()  # first call compiles (or loads from numba's cache)
-    _run(flags, packed, cam, 1, 1, 1, depth_limit, rr_depth, seed, 1, aux)
+    _run(flags, packed, cam, 1, 1, 1, depth_limit, rr_depth, seed, 0, 1, aux)
     compile_seconds = time.perf_counter() - started
     started = time.perf_counter()
     rgb, variance, albedo, normal, depth, counts = _run(
-        flags, packed, cam, width, height, spp, depth_limit, rr_depth, seed, tile_size, aux)
+        flags, packed, cam, width, height, spp, depth_limit, rr_depth, seed, first_sample, tile_size, aux)
     seconds = time.perf_counter() - started
     if aux and not (depth > 0).any():
         warnings.warn(f"scene {scene.name!r}: no camera ray hits geometry (the camera looks at nothing)",
@@ -399,7 +408,7 @@ def render(
         "features": sorted(chosen),
         "kernel": "general" if chosen == ALL_FEATURES else "specialised",
         "compile_seconds": compile_seconds,
-        "spp": spp, "max_depth": depth_limit, "rr_depth": rr_depth, "seed": int(seed),
+        "spp": spp, "first_sample": first_sample, "max_depth": depth_limit, "rr_depth": rr_depth, "seed": int(seed),
         "width": width, "height": height, "tile_size": tile_size, "variant": tree.variant,
         "threads": numba.get_num_threads(),
     }

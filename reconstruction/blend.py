@@ -29,6 +29,22 @@ linearly in log2(spp), and held constant outside.
 
 Fitted weights are cached by content key (dataset, weights of the model, spp list, path
 length, seed) under ``cache_root()/blend``.
+
+The frame's own cap
+-------------------
+A weight fitted on a few validation views can still be too large for a frame that looks
+different (the quick Crytek Sponza sweep frame lost 0.46 dB to its input at 64 spp with
+the validated weight). So, at spp >= 2, the frame is rendered as two halves of its samples
+(:func:`combine_halves` gives the frame back) and each half, denoised, is blended against
+the *other* half as a noisy but independent target; :func:`cross_validated_weight` finds
+the weight that minimises that clipped squared error, the metric of our PSNR. No reference
+is involved. For a denoised error independent of the input's noise, the half's optimum
+``w_h = 2 s / (2 s + e)`` (input variance ``s`` at the frame's spp, denoised error ``e``)
+gives the frame's as ``w_h / (2 - w_h)`` (:func:`frame_weight_cap`); where the denoiser
+also improves with more samples this is an under-estimate, so as a cap it only moves the
+blend towards the input. The weight used is ``min(w(spp), cap)``: the smaller of two
+independent estimates, the same caution as the bootstrap bound. The cap costs two more
+denoiser passes and the search (timed in the sweep).
 """
 
 from __future__ import annotations
@@ -37,7 +53,7 @@ import dataclasses
 import hashlib
 import json
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -55,6 +71,9 @@ BLOCK = 8
 BOOTSTRAP_SAMPLES = 400
 #: The weight used is this quantile of the bootstrap distribution of w* (a one-sided 90% lower bound).
 BOUND_QUANTILE = 0.1
+#: Golden-section steps of :func:`cross_validated_weight`: the bracket shrinks to 0.618^n of [0, 1].
+SEARCH_STEPS = 24
+_GOLDEN = (math.sqrt(5.0) - 1.0) / 2.0
 
 
 @dataclass(frozen=True)
@@ -81,17 +100,22 @@ class BlendWeights:
         if min(self.spp) < 1 or not all(0.0 <= w <= 1.0 for w in self.weights):
             raise ValueError("blend spp must be >= 1 and weights in [0, 1]")
 
-    def weight(self, spp: int) -> float:
-        """``w(spp)``: linear in log2(spp) between fitted spp, constant outside them."""
+    def weight(self, spp: int, cap: float = 1.0) -> float:
+        """``min(w(spp), cap)``: ``w`` linear in log2(spp) between fitted spp, constant outside them.
+
+        ``cap`` is a frame's own bound (:func:`frame_weight_cap`), in [0, 1].
+        """
         if spp < 1:
             raise ValueError(f"spp must be >= 1, got {spp}")
-        return float(np.interp(math.log2(spp), np.log2(self.spp), self.weights))
+        if not 0.0 <= cap <= 1.0:
+            raise ValueError(f"the weight cap must lie in [0, 1], got {cap}")
+        return min(float(np.interp(math.log2(spp), np.log2(self.spp), self.weights)), cap)
 
-    def apply(self, noisy: np.ndarray, denoised: np.ndarray, spp: int) -> np.ndarray:
+    def apply(self, noisy: np.ndarray, denoised: np.ndarray, spp: int, cap: float = 1.0) -> np.ndarray:
         """The blend of a denoised image with its noisy input at ``spp`` (float32, same shape)."""
         if noisy.shape != denoised.shape:
             raise ValueError(f"noisy {noisy.shape} and denoised {denoised.shape} differ in shape")
-        w = self.weight(spp)
+        w = self.weight(spp, cap)
         return (w * denoised + (1.0 - w) * noisy).astype(np.float32)
 
 
@@ -134,6 +158,92 @@ def optimal_weight(noisy: Sequence[np.ndarray], denoised: Sequence[np.ndarray], 
     picks = np.random.default_rng(seed).integers(0, len(numerator), size=(BOOTSTRAP_SAMPLES, len(numerator)))
     resampled = numerator[picks].sum(axis=1) / np.maximum(denominator[picks].sum(axis=1), 1e-300)
     return float(np.clip(np.quantile(resampled, quantile), 0.0, 1.0))
+
+
+def cross_validated_weight(noisy: np.ndarray, denoised: np.ndarray, target: np.ndarray) -> float:
+    """The ``w`` in [0, 1] minimising ``sum((clip(noisy + w (denoised - noisy)) - clip(target))^2)``.
+
+    Clipping to [0, 1] is our PSNR's. Each pixel's term falls and then rises in ``w``, and
+    in practice the sum has one minimum, found by :data:`SEARCH_STEPS` golden-section steps.
+    ``target`` is an independent noisy estimate (another half of the frame's samples): its
+    noise adds the same amount at every ``w`` in the unclipped case.
+
+    Parameters
+    ----------
+    noisy, denoised, target : (H, W, 3) arrays
+        Linear radiance.
+
+    Returns
+    -------
+    float
+    """
+    noisy, denoised, target = (np.asarray(x, np.float64) for x in (noisy, denoised, target))
+    if not noisy.shape == denoised.shape == target.shape:
+        raise ValueError(f"shapes differ: noisy {noisy.shape}, denoised {denoised.shape}, target {target.shape}")
+    change, goal = denoised - noisy, np.clip(target, 0.0, 1.0)
+
+    def error(w: float) -> float:
+        return float(np.sum((np.clip(noisy + w * change, 0.0, 1.0) - goal) ** 2))
+
+    lo, hi = 0.0, 1.0
+    a, b = hi - _GOLDEN * (hi - lo), lo + _GOLDEN * (hi - lo)
+    error_a, error_b = error(a), error(b)
+    for _ in range(SEARCH_STEPS):
+        if error_a <= error_b:
+            hi, b, error_b = b, a, error_a
+            a = hi - _GOLDEN * (hi - lo)
+            error_a = error(a)
+        else:
+            lo, a, error_a = a, b, error_b
+            b = lo + _GOLDEN * (hi - lo)
+            error_b = error(b)
+    middle = 0.5 * (lo + hi)
+    # The ends are candidates too (the minimum is often at 0 or 1, where the bracket only approaches it).
+    return min((0.0, middle, 1.0), key=error)
+
+
+def combine_halves(first, second) -> tuple[np.ndarray, np.ndarray]:
+    """The frame's ``rgb`` and ``albedo`` from two renders of adjacent sample ranges (float32).
+
+    ``first`` and ``second`` are :class:`~kdtrace.render.RenderResult` with albedo, the
+    second rendered with ``first_sample`` = the first's spp: their spp-weighted means are
+    the buffers of the render of all their samples, up to float rounding.
+    """
+    n1, n2 = first.stats["spp"], second.stats["spp"]
+    if second.stats["first_sample"] != first.stats["first_sample"] + n1:
+        raise ValueError("the halves are not adjacent sample ranges")
+    if first.albedo is None or second.albedo is None:
+        raise ValueError("the halves need their albedo buffers (render with aux=True)")
+    rgb = (n1 * first.rgb.astype(np.float64) + n2 * second.rgb) / (n1 + n2)
+    albedo = (n1 * first.albedo.astype(np.float64) + n2 * second.albedo) / (n1 + n2)
+    return rgb.astype(np.float32), albedo.astype(np.float32)
+
+
+def frame_weight_cap(denoise: Callable[[np.ndarray, np.ndarray], np.ndarray], first, second) -> float:
+    """A frame's own bound on the blend weight, from two halves of its samples (see the module docstring).
+
+    Each half is denoised and blended against the other (:func:`cross_validated_weight`);
+    the mean of the two weights, ``w_h``, is that of a half's spp, and ``w_h / (2 - w_h)``
+    the frame's.
+
+    Parameters
+    ----------
+    denoise : callable
+        ``denoise(rgb, albedo)`` -> denoised rgb, e.g. ``lambda c, a: inference.denoise(model, c, a)``.
+    first, second : RenderResult
+        Renders of two halves of the frame's samples, with albedo, equal spp.
+
+    Returns
+    -------
+    float
+        In [0, 1].
+    """
+    if first.stats["spp"] != second.stats["spp"]:
+        raise ValueError(f"the halves differ in spp: {first.stats['spp']} and {second.stats['spp']}")
+    weights = [cross_validated_weight(a.rgb, denoise(a.rgb, a.albedo), b.rgb)
+               for a, b in ((first, second), (second, first))]
+    half = 0.5 * (weights[0] + weights[1])
+    return half / (2.0 - half)
 
 
 def _weights_digest(model: nn.Module) -> str:

@@ -18,8 +18,11 @@ scene's default camera, the error of five methods against a Mitsuba reference of
     our path tracer (with albedo and normal) + Open Image Denoise;
 ``kdtrace+denoiser-blend``
     the documented variant that never loses to its input: the denoised frame blended with
-    the noisy one, ``w(spp) * denoised + (1 - w(spp)) * noisy``, ``w`` fitted per spp on the
-    scene's validation views (:mod:`reconstruction.blend`);
+    the noisy one, ``w * denoised + (1 - w) * noisy``, ``w = min(w(spp), cap)`` with ``w(spp)``
+    fitted per spp on the scene's validation views and, at spp >= 2, ``cap`` the frame's own
+    bound from two halves of its samples (:mod:`reconstruction.blend`; the halves are timed
+    as its render, the cap's two denoiser passes as reconstruction; the ``weight`` and
+    ``frame_cap`` columns record both);
 ``mitsuba+denoiser``, ``mitsuba+oidn``
     Mitsuba's ``path`` integrator wrapped in its ``aov`` integrator (RGB plus albedo and
     shading normal in one render, timed as a whole) + our per-scene denoiser / OIDN: the
@@ -561,9 +564,34 @@ def measure_scene(name: str, config: Config, profile_name: str, models: Reconstr
         mitsuba = MitsubaTimer(scene, depth, width, height)
         denoiser, superres = models.denoisers[name], models.superres
 
-        def ours(spp: int, w: int, h: int, aux: bool):
+        def ours(spp: int, w: int, h: int, aux: bool, first_sample: int = 0):
             return shortest(lambda: render(scene, spp=spp, max_depth=depth, seed=profile.seed, width=w, height=h,
-                                           aux=aux, tree=tree), warmup=0, seconds_of=lambda r: r.seconds)
+                                           aux=aux, tree=tree, first_sample=first_sample),
+                            warmup=0, seconds_of=lambda r: r.seconds)
+
+        def blended(weights, model, spp: int, frame, denoised, denoise_steps, render_seconds):
+            """The blend pipeline at ``spp``: (image, render seconds, step seconds, weight, frame cap or NaN).
+
+            At spp >= 2 the frame is rendered as two halves of its samples, which give the
+            frame back (the same samples as ``frame``, so its denoised image is reused) and
+            the frame's own weight cap (:func:`reconstruction.blend.frame_weight_cap`).
+            """
+            from reconstruction.blend import combine_halves, frame_weight_cap
+            from reconstruction.inference import denoise
+
+            if spp < 2:
+                image, steps = timed_reconstruction([lambda d: weights.apply(frame.rgb, d, spp)], denoised)
+                return image, render_seconds, denoise_steps + steps, weights.weight(spp), math.nan
+            first, first_seconds = ours(spp // 2, width, height, aux=True)
+            second, second_seconds = ours(spp - spp // 2, width, height, aux=True, first_sample=spp // 2)
+            rgb, albedo = combine_halves(first, second)
+            if not (np.allclose(rgb, frame.rgb, rtol=1e-5, atol=1e-6) and np.allclose(albedo, frame.albedo, rtol=1e-5, atol=1e-6)):
+                raise RuntimeError(f"{name} at {spp} spp: the two halves do not give the frame back")
+            cap, cap_steps = timed_reconstruction(
+                [lambda halves: frame_weight_cap(lambda c, a: denoise(model, c, a), *halves)], (first, second))
+            image, steps = timed_reconstruction([lambda d: weights.apply(frame.rgb, d, spp, cap)], denoised)
+            return (image, first_seconds + second_seconds, denoise_steps + cap_steps + steps, weights.weight(spp, cap),
+                    cap)
 
         points = []
         for spp in profile.sweep_spp:
@@ -579,11 +607,10 @@ def measure_scene(name: str, config: Config, profile_name: str, models: Reconstr
             points.append(_point("kdtrace+denoiser", spp, width, height, seconds, steps, denoised, reference.rgb,
                                  input_psnr))
             if name in models.blends:
-                weights = models.blends[name]
-                image, blend_steps = timed_reconstruction(
-                    [lambda d, w=weights, n=frame.rgb, s=spp: w.apply(n, d, s)], denoised)
-                points.append(_point("kdtrace+denoiser-blend", spp, width, height, seconds, steps + blend_steps, image,
-                                     reference.rgb, input_psnr, weight=weights.weight(spp)))
+                image, blend_seconds, blend_steps, weight, cap = blended(models.blends[name], denoiser, spp, frame,
+                                                                         denoised, steps, seconds)
+                points.append(_point("kdtrace+denoiser-blend", spp, width, height, blend_seconds, blend_steps, image,
+                                     reference.rgb, input_psnr, weight=weight, frame_cap=cap))
             image, steps = timed_reconstruction([lambda f: oidn(f.rgb, f.albedo, f.normal)], frame)
             points.append(_point("kdtrace+oidn", spp, width, height, seconds, steps, image, reference.rgb, input_psnr))
 

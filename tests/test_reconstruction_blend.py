@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 
+from reconstruction import blend
 from reconstruction.blend import BlendWeights, optimal_weight
 
 
@@ -66,3 +69,54 @@ def test_bad_calls_are_refused():
         weights.weight(0)
     with pytest.raises(ValueError, match="shape"):
         weights.apply(np.zeros((2, 2, 3)), np.zeros((2, 3, 3)), 4)
+
+
+# ------------------------------------------------------------------ the frame's own cap
+def _halves(seed: int, noise: float, error: float, size: int = 96):
+    """Two independent halves of a frame: truth + noise of variance ``2 noise^2`` each (the frame: ``noise^2``).
+
+    The "denoiser" returns the truth plus an error of its own, independent of the input's noise.
+    """
+    rng = np.random.default_rng(seed)
+    truth = rng.uniform(0.2, 0.8, (size, size, 3))
+    halves = [SimpleNamespace(rgb=truth + np.sqrt(2.0) * noise * rng.standard_normal(truth.shape),
+                              albedo=np.ones_like(truth), stats={"spp": 2, "first_sample": 2 * k}) for k in range(2)]
+
+    def denoise(rgb, albedo):
+        return truth + error * rng.standard_normal(truth.shape)
+
+    return truth, halves, denoise
+
+
+def test_cross_validated_weight_is_the_clipped_least_squares_blend():
+    rng = np.random.default_rng(7)
+    truth = rng.uniform(0.0, 1.2, (48, 48, 3))  # some pixels above 1: clipped by the metric
+    noisy, denoised = truth + 0.2 * rng.standard_normal(truth.shape), truth + 0.1 * np.sin(truth * 9.0)
+    grid = np.linspace(0, 1, 2001)
+    errors = [np.sum((np.clip(noisy + w * (denoised - noisy), 0, 1) - np.clip(truth, 0, 1)) ** 2) for w in grid]
+    assert blend.cross_validated_weight(noisy, denoised, truth) == pytest.approx(grid[int(np.argmin(errors))], abs=1e-3)
+    assert blend.cross_validated_weight(noisy, truth, truth) == 1.0  # a perfect denoiser
+    assert blend.cross_validated_weight(truth, noisy, truth) == 0.0  # a clean input
+    with pytest.raises(ValueError, match="shapes differ"):
+        blend.cross_validated_weight(noisy, denoised[:-1], truth)
+
+
+@pytest.mark.parametrize("noise, error", [(0.05, 0.05), (0.02, 0.1), (0.1, 0.03)])
+def test_frame_cap_estimates_the_frames_optimal_weight_without_a_reference(noise, error):
+    """Denoised error independent of the noise: the optimum is noise^2 / (noise^2 + error^2)."""
+    truth, halves, denoise = _halves(11, noise, error)
+    expected = noise**2 / (noise**2 + error**2)
+    assert blend.frame_weight_cap(denoise, *halves) == pytest.approx(expected, abs=0.03)
+
+
+def test_the_cap_only_lowers_the_validated_weight_and_halves_combine():
+    weights = BlendWeights((1, 4), (1.0, 0.5), views=2)
+    assert weights.weight(4, cap=0.2) == 0.2 and weights.weight(4, cap=0.9) == 0.5
+    with pytest.raises(ValueError, match="cap"):
+        weights.weight(4, cap=1.5)
+    _, halves, _ = _halves(3, 0.1, 0.1)
+    rgb, albedo = blend.combine_halves(*halves)
+    np.testing.assert_allclose(rgb, (halves[0].rgb + halves[1].rgb) / 2, rtol=1e-6)
+    assert rgb.dtype == albedo.dtype == np.float32
+    with pytest.raises(ValueError, match="adjacent"):
+        blend.combine_halves(halves[1], halves[0])

@@ -142,12 +142,14 @@ def test_denoiser_blended_with_its_input_is_not_below_the_input_at_any_sweep_spp
     """Weights fitted on the validation views; measured on the test views rendered at each sweep spp.
 
     The raw network (trained at 4 spp) loses to its own input at high spp; the blend of
-    :mod:`reconstruction.blend` must not, and must keep most of the network's gain at 4 spp.
+    :mod:`reconstruction.blend` (capped by each frame's own bound from two halves of its
+    samples) must not, and must keep most of the network's gain at 4 spp.
     """
     from kdtrace.render import render
     from kdtrace.scenes import load_scene
-    from reconstruction.blend import fit_blend_weights, view_seed
+    from reconstruction.blend import combine_halves, fit_blend_weights, frame_weight_cap, view_seed
     from reconstruction.data import view_camera
+    from reconstruction.inference import denoise
 
     model, dataset, scene = trained["denoiser"].model, trained["dataset"], load_scene(SCENE)
     weights = fit_blend_weights(model, dataset, scene, SWEEP_SPP, PROFILE.max_depth, PROFILE.seed)
@@ -162,13 +164,17 @@ def test_denoiser_blended_with_its_input_is_not_below_the_input_at_any_sweep_spp
             record = records[name]
             camera = view_camera(record)
             # the test seed stream differs from the validation fit's (another split, another index)
-            frame = render(scene, spp=spp, max_depth=PROFILE.max_depth, seed=view_seed(PROFILE.seed + 1, record["index"], spp),
-                           width=camera.width, height=camera.height, aux=True, camera=camera)
+            halves = [render(scene, spp=max(spp // 2, 1), max_depth=PROFILE.max_depth, first_sample=first,
+                             seed=view_seed(PROFILE.seed + 1, record["index"], spp),
+                             width=camera.width, height=camera.height, aux=True, camera=camera)
+                      for first in ((0, spp // 2) if spp > 1 else (0,))]
+            rgb, albedo = combine_halves(*halves) if spp > 1 else (halves[0].rgb, halves[0].albedo)
+            cap = frame_weight_cap(lambda c, a: denoise(model, c, a), *halves) if spp > 1 else 1.0
             reference = dataset.load_view(name)["reference"]
-            raw = evaluate.denoise_view(model, {"noisy": frame.rgb, "albedo": frame.albedo, "reference": reference})
-            outputs["noisy"].append(frame.rgb)
+            raw = evaluate.denoise_view(model, {"noisy": rgb, "albedo": albedo, "reference": reference})
+            outputs["noisy"].append(rgb)
             outputs["raw"].append(raw)
-            outputs["blend"].append(weights.apply(frame.rgb, raw, spp))
+            outputs["blend"].append(weights.apply(rgb, raw, spp, cap))
             references.append(reference)
         psnrs = {method: evaluate.pooled(images, references)["psnr"] for method, images in outputs.items()}
         print(f"  {spp:3d} spp: " + "  ".join(f"{m} {p:6.2f}" for m, p in psnrs.items()))

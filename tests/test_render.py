@@ -113,6 +113,17 @@ def test_image_independent_of_threads_and_tiles(cbox):
     assert not np.array_equal(again.rgb, images[0][0])
 
 
+def test_adjacent_sample_ranges_average_to_the_render_of_their_union(cbox):
+    tree = build_kdtree(cbox)
+    whole = render(cbox, spp=5, max_depth=3, seed=SEED, width=24, height=20, tree=tree)
+    first = render(cbox, spp=2, max_depth=3, seed=SEED, width=24, height=20, tree=tree)
+    rest = render(cbox, spp=3, max_depth=3, seed=SEED, width=24, height=20, tree=tree, first_sample=2)
+    assert rest.stats["first_sample"] == 2 and not np.array_equal(first.rgb, rest.rgb)
+    for buffer in ("rgb", "albedo"):
+        mean = (2 * getattr(first, buffer).astype(np.float64) + 3 * getattr(rest, buffer)) / 5
+        np.testing.assert_allclose(mean, getattr(whole, buffer), rtol=1e-6, atol=1e-7)
+
+
 def test_stats_count_rays_and_record_features(cbox):
     result = render(cbox, spp=2, max_depth=3, width=16, height=12)
     assert result.stats["rays"]["camera"] == result.stats["paths"] == 16 * 12 * 2
@@ -252,6 +263,7 @@ def test_stereo_pair_differs_by_horizontal_parallax_only(cbox):
 def test_bad_arguments_are_clear_errors(cbox):
     for kwargs, match in (({"spp": 0}, "spp"), ({"width": 0}, "width"), ({"height": -2}, "height"),
                           ({"max_depth": 0}, "max_depth"), ({"seed": -1}, "seed"), ({"tile_size": 0}, "tile_size"),
+                          ({"first_sample": -1}, "first_sample"), ({"first_sample": 1.5}, "first_sample"),
                           ({"features": {"emitters"}}, "needs features"), ({"features": {"bogus"}}, "unknown")):
         with pytest.raises(ValueError, match=match):
             render(cbox, **kwargs)
