@@ -163,13 +163,19 @@ def test_denoiser_blended_with_its_input_is_not_below_the_input_at_any_sweep_spp
         for name in dataset.views("test"):
             record = records[name]
             camera = view_camera(record)
-            # the test seed stream differs from the validation fit's (another split, another index)
-            halves = [render(scene, spp=max(spp // 2, 1), max_depth=PROFILE.max_depth, first_sample=first,
-                             seed=view_seed(PROFILE.seed + 1, record["index"], spp),
-                             width=camera.width, height=camera.height, aux=True, camera=camera)
-                      for first in ((0, spp // 2) if spp > 1 else (0,))]
-            rgb, albedo = combine_halves(*halves) if spp > 1 else (halves[0].rgb, halves[0].albedo)
-            cap = frame_weight_cap(lambda c, a: denoise(model, c, a), *halves) if spp > 1 else 1.0
+            def samples(count, first, record=record, camera=camera, spp=spp):
+                # the test seed stream differs from the validation fit's (another split, another index)
+                return render(scene, spp=count, max_depth=PROFILE.max_depth, first_sample=first,
+                              seed=view_seed(PROFILE.seed + 1, record["index"], spp),
+                              width=camera.width, height=camera.height, aux=True, camera=camera)
+
+            if spp < 2:
+                frame = samples(spp, 0)
+                rgb, albedo, cap = frame.rgb, frame.albedo, 1.0
+            else:
+                halves = (samples(spp // 2, 0), samples(spp // 2, spp // 2))
+                rgb, albedo = combine_halves(*halves)
+                cap = frame_weight_cap(lambda c, a: denoise(model, c, a), *halves)
             reference = dataset.load_view(name)["reference"]
             raw = evaluate.denoise_view(model, {"noisy": rgb, "albedo": albedo, "reference": reference})
             outputs["noisy"].append(rgb)
