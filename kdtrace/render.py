@@ -9,8 +9,9 @@ How to use::
     result.rgb, result.variance, result.albedo, result.normal, result.depth, result.stats
     left, right = render_stereo(scene, eye_separation=0.065, spp=4)
 
-This module validates input, packs the scene into flat arrays, picks (and warms up) the
-kernel specialised for the scene's features and times the render; the numba kernels
+This module validates input, packs the scene into flat arrays, sets the kernel's feature
+flags to what the scene needs (see :func:`scene_features`), warms the kernel up and times
+the render; the numba kernels
 live in :mod:`kdtrace._render_kernels`. ``max_depth`` follows Mitsuba 3's ``path``
 integrator (1: emitters seen directly; 2: direct light; 3: one indirect bounce; -1:
 unbounded with Russian roulette from depth ``rr_depth``).
@@ -39,13 +40,13 @@ from kdtrace.kdtree import KDTree, build_kdtree
 from kdtrace.rays import camera_basis
 from kdtrace.scene import Camera, Scene
 
-#: Kernel features, in the order of the compile-time flags of :func:`kdtrace._render_kernels.render_tiles`.
+#: Kernel features, in the order of the flags of :func:`kdtrace._render_kernels.render_tiles`.
 FEATURES: tuple[str, ...] = ("specular", "textures", "normals", "sky", "emitters", "emitter_selection", "aux")
 #: Pass as ``features`` to force the general kernel.
 ALL_FEATURES = frozenset(FEATURES)
 #: Positions of :func:`kdtrace._render_kernels.render_tiles`' compile-time (``literally``)
-#: arguments: the feature flags, then ``watertight`` after the five tree arrays.
-_LITERAL_ARGS = frozenset(range(len(FEATURES))) | {len(FEATURES) + 5}
+#: arguments: ``watertight``, after the feature flags and the five tree arrays.
+_LITERAL_ARGS = frozenset({len(FEATURES) + 5})
 _KINDS = {"diffuse": kernels.KIND_DIFFUSE, "mirror": kernels.KIND_MIRROR, "dielectric": kernels.KIND_DIELECTRIC}
 
 
@@ -73,7 +74,8 @@ class RenderResult:
         Wall time of the render kernel (compilation and warm-up excluded).
     stats : dict
         ``rays`` (camera, shadow, bounce), ``paths``, ``paths_per_second``,
-        ``rays_per_second``, ``features``, ``kernel`` ("specialised" or "general"),
+        ``rays_per_second``, ``features``, ``kernel`` ("specialised": the scene's
+        features only, or "general": every feature flag on),
         ``compile_seconds`` and the render settings.
     """
 
