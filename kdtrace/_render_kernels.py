@@ -234,7 +234,7 @@ def offset_origin(px, py, pz, nx, ny, nz, dx, dy, dz):
 #   aux                albedo, normal and depth of the first hit
 # They were numba literals (one machine code per combination, absent branches pruned) until
 # 2026-12-03: kernels for all features and for each scene's own ran at the same speed
-# (paired general/specialised seconds 0.86-1.07, medians 0.99-1.07, on cbox-original,
+# (paired general/specialised seconds: medians 0.86-1.07, every round 0.63-1.23, on cbox-original,
 # cbox-sphere, car, Crytek Sponza and bunny, 256x256, 8 spp, max_depth 1 and 3), while each
 # combination cost 45-60 s of compilation on first use (13 of them in one CI run).
 # ``watertight`` (the triangle test of the tree, :func:`kdtrace._kdtree_traverse.trace_ray`)
