@@ -42,7 +42,7 @@ from kdtrace.scene import Camera, Scene
 
 #: Kernel features, in the order of the flags of :func:`kdtrace._render_kernels.render_tiles`.
 FEATURES: tuple[str, ...] = ("specular", "textures", "normals", "sky", "emitters", "emitter_selection", "aux")
-#: Pass as ``features`` to force the general kernel.
+#: Pass as ``features`` to turn every feature flag on (the "general" kernel stats report).
 ALL_FEATURES = frozenset(FEATURES)
 #: Positions of :func:`kdtrace._render_kernels.render_tiles`' compile-time (``literally``)
 #: arguments: ``watertight``, after the feature flags and the five tree arrays.
