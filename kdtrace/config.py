@@ -129,6 +129,10 @@ class ProfileConfig:
         Reconstruction scenes that also get the documented normal + depth variant of the
         per-scene denoiser (auxiliary albedo, normal and depth; Table 2), measured on the same
         test views. Empty for none: each costs one more per-scene training.
+    demodulated_scenes : tuple of str
+        Reconstruction scenes that also get the albedo-demodulated variant of the per-scene
+        denoiser (the paper's network between a division and a multiplication by the albedo,
+        :class:`reconstruction.models.Denoiser`; Table 2). Empty for none; one more training each.
     sweep_spp : tuple of int
         Samples per pixel of the run-time-against-error sweep (our path tracer and Mitsuba).
     sweep_width, sweep_height : int
@@ -155,6 +159,7 @@ class ProfileConfig:
     build_scaling_scene: str = ""
     sensitivity_scenes: tuple[str, ...] = ()
     variant_scenes: tuple[str, ...] = ()
+    demodulated_scenes: tuple[str, ...] = ()
     sweep_spp: tuple[int, ...] = (1, 2, 4, 8, 16, 32)
     sweep_width: int = 128
     sweep_height: int = 128
@@ -164,7 +169,7 @@ class ProfileConfig:
     combined_reference_spp: int = 256
 
     def __post_init__(self) -> None:
-        for name in ("scenes", "reconstruction_scenes", "variant_scenes", "sweep_spp"):
+        for name in ("scenes", "reconstruction_scenes", "variant_scenes", "demodulated_scenes", "sweep_spp"):
             object.__setattr__(self, name, tuple(getattr(self, name)))
         if min(self.agreement_rays_per_kind, self.timing_rays, self.frame_width, self.frame_height, self.frame_spp,
                self.sweep_width, self.sweep_height, self.sweep_reference_spp, self.combined_reference_spp,
@@ -175,9 +180,10 @@ class ProfileConfig:
         if self.far_unseen_scene and self.far_unseen_scene in (*self.reconstruction_scenes, self.unseen_scene):
             raise ValueError(f"profile far_unseen_scene {self.far_unseen_scene!r} must not be a reconstruction "
                              "scene or the unseen_scene")
-        if set(self.variant_scenes) - set(self.reconstruction_scenes):
-            raise ValueError(f"profile variant_scenes {sorted(set(self.variant_scenes) - set(self.reconstruction_scenes))} "
-                             "are not among reconstruction_scenes")
+        for name in ("variant_scenes", "demodulated_scenes"):
+            stray = sorted(set(getattr(self, name)) - set(self.reconstruction_scenes))
+            if stray:
+                raise ValueError(f"profile {name} {stray} are not among reconstruction_scenes")
         if self.unseen_scene and self.unseen_scene in self.reconstruction_scenes:
             raise ValueError(f"profile unseen_scene {self.unseen_scene!r} must not be one of reconstruction_scenes")
 

@@ -34,6 +34,15 @@ The paper's net predicts the clean image directly (``residual=False``). With the
 auxiliary normal and depth inputs (``auxiliary=("albedo", "normal", "depth")``, 10 input
 channels) only ``inc`` grows, to 10·32·9 + 32 = 2,912, giving 96,259 parameters.
 
+Albedo demodulation (``demodulate=True``, a documented variant; off by default, the count
+stays 95,107): the same network sees the noisy colour divided by the diffuse map,
+``encode(decode(noisy) / (albedo + ε))`` with ε = :data:`DEMODULATION_EPSILON`, and its
+output is multiplied back, ``encode(decode(out) · (albedo + ε))``, so input and output stay
+in the paper net's encoded space and every caller is unchanged. Texture and wall colour
+then pass through the multiplication untouched and the net only smooths the illumination
+(the irradiance-demodulation of SVGF and of production denoisers); ε keeps black and
+specular surfaces (albedo 0) finite. All parameter-free.
+
 The five poolings need sides divisible by 32: :meth:`Denoiser.forward` pads the bottom
 and right edges by edge replication up to the next multiple of 32 and crops the result
 back, so any input size works and the pooling grid is anchored at the top-left pixel
@@ -63,6 +72,9 @@ POOLING_MULTIPLE = 32
 DEPTH = 5
 #: Filters of every hidden layer.
 FILTERS = 32
+#: Added to the albedo before the colour is divided by it (``demodulate=True``): keeps black
+#: and mirror surfaces (albedo 0) finite while a dark diffuse albedo of 0.05 still divides by 0.06.
+DEMODULATION_EPSILON = 0.01
 
 
 def count_parameters(model: nn.Module) -> int:
@@ -92,9 +104,13 @@ class Denoiser(nn.Module):
     residual : bool
         Predict a correction added to the encoded noisy colour, starting from the
         identity (default), or the clean image directly as the paper does.
+    demodulate : bool
+        Denoise the colour divided by ``albedo + ε`` and multiply the result back (see the
+        module docstring); the input and output spaces are unchanged.
     """
 
-    def __init__(self, auxiliary: tuple[str, ...] = ("albedo",), residual: bool = True) -> None:
+    def __init__(self, auxiliary: tuple[str, ...] = ("albedo",), residual: bool = True,
+                 demodulate: bool = False) -> None:
         super().__init__()
         auxiliary = tuple(auxiliary)
         order = tuple(name for name in AUXILIARY_CHANNELS if name in auxiliary)
@@ -109,6 +125,7 @@ class Denoiser(nn.Module):
         self.decoders = nn.ModuleList(nn.Conv2d(FILTERS, FILTERS, 3, padding=1) for _ in range(DEPTH))
         self.out = nn.Conv2d(FILTERS, 3, 3, padding=1)
         self.residual = bool(residual)
+        self.demodulate = bool(demodulate)
         if self.residual:
             nn.init.zeros_(self.out.weight)
             nn.init.zeros_(self.out.bias)
@@ -116,7 +133,10 @@ class Denoiser(nn.Module):
     @property
     def config(self) -> dict:
         """Constructor arguments and identity, for checkpoints: ``Denoiser(**config["kwargs"])``."""
-        return {"architecture": "Denoiser", "kwargs": {"auxiliary": list(self.auxiliary), "residual": self.residual}}
+        kwargs = {"auxiliary": list(self.auxiliary), "residual": self.residual}
+        if self.demodulate:  # only when set, so the paper net's cache keys and checkpoints stay valid
+            kwargs["demodulate"] = True
+        return {"architecture": "Denoiser", "kwargs": kwargs}
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """Denoise a batch.
@@ -134,6 +154,10 @@ class Denoiser(nn.Module):
         """
         _check_batch(x, self.in_channels, "Denoiser")
         height, width = x.shape[-2:]
+        if self.demodulate:
+            # fp32 whatever the autocast: expm1/log1p of bf16 values would lose the low bits
+            scale = x[:, 3:6].float() + DEMODULATION_EPSILON
+            x = torch.cat([torch.log1p(torch.expm1(x[:, :3].float().clamp_min(0)) / scale), x[:, 3:].float()], dim=1)
         noisy = x[:, :3]
         pad_h, pad_w = (-height) % POOLING_MULTIPLE, (-width) % POOLING_MULTIPLE
         if pad_h or pad_w:
@@ -147,7 +171,10 @@ class Denoiser(nn.Module):
         for conv, skip in zip(reversed(self.decoders), reversed(skips), strict=True):
             x = F.relu(conv(F.interpolate(x, scale_factor=2, mode="nearest"))) + skip
         correction = self.out(x)[..., :height, :width]
-        return noisy + correction if self.residual else correction
+        output = noisy + correction if self.residual else correction
+        if self.demodulate:
+            output = torch.log1p(torch.expm1(output.float().clamp_min(0)) * scale)
+        return output
 
 
 class Superresolution(nn.Module):

@@ -467,7 +467,8 @@ def denoiser_data(scene_names: list[str] | tuple[str, ...], profile: str | Recon
 def train_denoiser(scene_names: list[str] | tuple[str, ...], profile: str | ReconstructionProfile = "quick",
                    model: nn.Module | None = None, loss_fn: nn.Module | None = None,
                    auxiliary: tuple[str, ...] = ("albedo",), directory: Path | None = None,
-                   psnr: Callable | None = None, progress: bool | None = None) -> TrainResult:
+                   psnr: Callable | None = None, progress: bool | None = None,
+                   demodulate: bool = False) -> TrainResult:
     """Train the denoiser on the Precision Graphics datasets of ``scene_names``.
 
     One scene gives the scene's specialised (Precision Graphics) model, several the
@@ -479,8 +480,8 @@ def train_denoiser(scene_names: list[str] | tuple[str, ...], profile: str | Reco
     profile : str or ReconstructionProfile
         Dataset, crop and training settings.
     model : nn.Module, optional
-        Default :class:`reconstruction.models.Denoiser` with ``auxiliary``, initialised
-        after ``torch.manual_seed(profile.seed)``.
+        Default :class:`reconstruction.models.Denoiser` with ``auxiliary`` and
+        ``demodulate``, initialised after ``torch.manual_seed(profile.seed)``.
     loss_fn : nn.Module, optional
         Default :class:`reconstruction.loss.EdgeAwareLoss` (sigma 1.4).
     auxiliary : tuple of str
@@ -490,6 +491,9 @@ def train_denoiser(scene_names: list[str] | tuple[str, ...], profile: str | Reco
     psnr : callable, optional
         Default :func:`reconstruction.metrics.psnr`.
     progress : bool, optional
+    demodulate : bool
+        The default model denoises the albedo-demodulated colour (the documented variant of
+        :class:`reconstruction.models.Denoiser`); ignored when ``model`` is given.
 
     Returns
     -------
@@ -504,7 +508,7 @@ def train_denoiser(scene_names: list[str] | tuple[str, ...], profile: str | Reco
         from reconstruction.models import Denoiser
 
         torch.manual_seed(profile.seed)
-        model = Denoiser(auxiliary)
+        model = Denoiser(auxiliary, demodulate=demodulate)
     if loss_fn is None:
         from reconstruction.loss import DENOISER_SIGMA, EdgeAwareLoss
 

@@ -23,6 +23,10 @@ scene's default camera, the error of five methods against a Mitsuba reference of
     bound from two halves of its samples (:mod:`reconstruction.blend`; the halves are timed
     as its render, the cap's two denoiser passes as reconstruction; the ``weight`` and
     ``frame_cap`` columns record both);
+``kdtrace+demodulated``, ``mitsuba+demodulated``
+    either renderer (with albedo) + the scene's albedo-demodulated denoiser, the documented
+    variant of the paper's network (``Denoiser(demodulate=True)``, same parameters), on the
+    scenes of the profile's ``demodulated_scenes``;
 ``mitsuba+denoiser``, ``mitsuba+oidn``
     Mitsuba's ``path`` integrator wrapped in its ``aov`` integrator (RGB plus albedo and
     shading normal in one render, timed as a whole) + our per-scene denoiser / OIDN: the
@@ -82,7 +86,7 @@ from reports.notes import ReportNote
 from reports.paper_figures import ACCEPTABLE_PSNR
 
 #: Bump when what a row measures changes: cached rows become stale.
-ROW_VERSION = 3
+ROW_VERSION = 4
 #: Every time is the shortest of this many runs.
 TIMING_REPEATS = 3
 #: The methods, in table order, with their labels.
@@ -95,9 +99,12 @@ METHODS = {
     "kdtrace+denoiser-blend": "ours + denoiser, blended with input",
     "mitsuba+denoiser": "Mitsuba + our denoiser",
     "mitsuba+oidn": "Mitsuba + OIDN",
+    "kdtrace+demodulated": "ours + demodulated denoiser",
+    "mitsuba+demodulated": "Mitsuba + demodulated denoiser",
 }
 #: Our reconstruction pipelines, compared with brute force in the headline.
-PIPELINES = ("kdtrace+denoiser", "kdtrace+denoiser-blend", "kdtrace-half+denoiser+superres", "mitsuba+denoiser")
+PIPELINES = ("kdtrace+denoiser", "kdtrace+denoiser-blend", "kdtrace-half+denoiser+superres", "mitsuba+denoiser",
+             "kdtrace+demodulated", "mitsuba+demodulated")
 #: Every denoising pipeline of the headline: ours and both renderers with OIDN.
 DENOISING = (*PIPELINES, "kdtrace+oidn", "mitsuba+oidn")
 #: The brute-force renderer each pipeline starts from (its own renderer's curve is the first comparison).
@@ -378,16 +385,20 @@ class Reconstruction:
     denoisers: dict[str, Any]
     superres: Any
     blends: dict[str, Any] = dataclasses.field(default_factory=dict)
+    demodulated: dict[str, Any] = dataclasses.field(default_factory=dict)
 
     @classmethod
     def load(cls, scene_names: Sequence[str], profile: ReconstructionProfile, all_scenes: Sequence[str],
-             progress: bool = True, blend_spp: Sequence[int] = ()) -> Reconstruction:
+             progress: bool = True, blend_spp: Sequence[int] = (),
+             demodulated_scenes: Sequence[str] = ()) -> Reconstruction:
         """Train (or reuse from the cache) the denoiser of each of ``scene_names`` and the SR net.
 
         The superresolution net is trained on the photographs plus the renders of
         ``all_scenes`` (the profile's reconstruction scenes), as for Table 5. With
         ``blend_spp``, each denoiser's blend weights at those spp are fitted (or reused) on
-        its scene's validation views (:func:`reconstruction.blend.fit_blend_weights`).
+        its scene's validation views (:func:`reconstruction.blend.fit_blend_weights`). The
+        scenes of ``demodulated_scenes`` also get their albedo-demodulated denoiser (Table 2's
+        variant, the same cached models).
         """
         from kdtrace.scenes import load_scene
         from reconstruction.blend import fit_blend_weights
@@ -402,7 +413,9 @@ class Reconstruction:
                 blends[name] = fit_blend_weights(model, generate_dataset(name, profile, progress=False),
                                                  load_scene(name), blend_spp, profile.max_depth, profile.seed,
                                                  progress=progress)
-        return cls(denoisers, superres, blends)
+        demodulated = {name: train_denoiser([name], profile, progress=progress, demodulate=True).model
+                       for name in demodulated_scenes}
+        return cls(denoisers, superres, blends, demodulated)
 
 
 def denoise_frame(model, frame) -> np.ndarray:
@@ -602,6 +615,7 @@ def measure_scene(name: str, config: Config, profile_name: str, models: Reconstr
             points.append(_point("mitsuba", spp, width, height, seconds, [], image, reference.rgb))
 
             frame, seconds = ours(spp, width, height, aux=True)
+            frame_seconds = seconds
             input_psnr = errors(frame.rgb, reference.rgb)["psnr"]
             denoised, steps = timed_reconstruction([lambda f: denoise_frame(denoiser, f)], frame)
             points.append(_point("kdtrace+denoiser", spp, width, height, seconds, steps, denoised, reference.rgb,
@@ -622,6 +636,12 @@ def measure_scene(name: str, config: Config, profile_name: str, models: Reconstr
                                  input_psnr))
             image, steps = timed_reconstruction([lambda f: oidn(f.rgb, f.albedo, f.normal)], mitsuba_frame)
             points.append(_point("mitsuba+oidn", spp, width, height, seconds, steps, image, reference.rgb, input_psnr))
+            if name in models.demodulated:
+                for method, source, render_seconds in (("kdtrace+demodulated", frame, frame_seconds),
+                                                       ("mitsuba+demodulated", mitsuba_frame, seconds)):
+                    image, steps = timed_reconstruction([lambda f: denoise_frame(models.demodulated[name], f)], source)
+                    points.append(_point(method, spp, width, height, render_seconds, steps, image, reference.rgb,
+                                         errors(source.rgb, reference.rgb)["psnr"]))
 
             half, seconds = ours(spp, width // 2, height // 2, aux=True)
             image, steps = timed_reconstruction([lambda f: denoise_frame(denoiser, f),
@@ -737,7 +757,8 @@ def with_plugins(rows: Sequence[dict], plugin_rows: Sequence[dict]) -> list[dict
 
 
 def scene_rows(kind: str, version: int, measure_scene: Callable[..., dict], config: Config, profile_name: str,
-               out_dir: Path, fresh: bool, progress: bool, blend_spp: Sequence[int] = ()) -> list[dict]:
+               out_dir: Path, fresh: bool, progress: bool, blend_spp: Sequence[int] = (),
+               demodulated_scenes: Sequence[str] = ()) -> list[dict]:
     """Per-scene rows of a report over the profile's reconstruction scenes, reused when their key matches.
 
     A row is cached in ``out_dir/rows/KIND/SCENE.json`` under a content key of the scene,
@@ -759,6 +780,8 @@ def scene_rows(kind: str, version: int, measure_scene: Callable[..., dict], conf
         As for :func:`generate`.
     blend_spp : sequence of int
         Fit the denoisers' blend weights at these spp (:meth:`Reconstruction.load`); () skips it.
+    demodulated_scenes : sequence of str
+        Scenes whose albedo-demodulated denoiser is loaded too (:meth:`Reconstruction.load`).
 
     Returns
     -------
@@ -786,7 +809,8 @@ def scene_rows(kind: str, version: int, measure_scene: Callable[..., dict], conf
                 continue
         if not models:
             bar.set_postfix_str("reconstruction networks")
-            models.append(Reconstruction.load(names, recon, names, progress, blend_spp=blend_spp))
+            models.append(Reconstruction.load(names, recon, names, progress, blend_spp=blend_spp,
+                                              demodulated_scenes=demodulated_scenes))
         load_before = os.getloadavg()[0]
         row = measure_scene(name, config, profile_name, models[0], bar)
         row["load_average"] = [load_before, os.getloadavg()[0]]
@@ -830,7 +854,8 @@ def generate(config: Config, profile_name: str, out_dir: str | Path, fresh: bool
     """
     out_dir = Path(out_dir)
     rows = scene_rows("error_time", ROW_VERSION, measure_scene, config, profile_name, out_dir, fresh, progress,
-                      blend_spp=config.profile(profile_name).sweep_spp)
+                      blend_spp=config.profile(profile_name).sweep_spp,
+                      demodulated_scenes=config.profile(profile_name).demodulated_scenes)
     if denoisers:
         extra = plugin_scene_rows(list(denoisers), config, profile_name, out_dir, fresh, progress)
         for row in extra:
@@ -868,10 +893,12 @@ def scene_metrics(row: dict, profile: ProfileConfig, recon: ReconstructionProfil
     metrics = [Metric(f"error_time/{name}/kdtrace_over_mitsuba_paths_per_second", "ratio", rate["mitsuba"] / rate["kdtrace"],
                       f"paths/s of our path tracer over Mitsuba path ({row['mitsuba_variant']}), {row['width']}x"
                       f"{row['height']} {spp} spp, same run")]
-    denoised = points[(points["method"] == "kdtrace+denoiser") & (points["spp"] == recon.spp)]
-    if len(denoised):
-        metrics.append(Metric(f"error_time/{name}/denoiser_psnr_{recon.spp}spp", "psnr", float(denoised["psnr"].iloc[0]),
-                              f"dB, ours + per-scene denoiser at {recon.spp} spp vs Mitsuba {row['reference']['spp']} spp"))
+    for method, metric, what in (("kdtrace+denoiser", "denoiser", "per-scene denoiser"),
+                                 ("kdtrace+demodulated", "demodulated_denoiser", "demodulated per-scene denoiser")):
+        denoised = points[(points["method"] == method) & (points["spp"] == recon.spp)]
+        if len(denoised):
+            metrics.append(Metric(f"error_time/{name}/{metric}_psnr_{recon.spp}spp", "psnr", float(denoised["psnr"].iloc[0]),
+                                  f"dB, ours + {what} at {recon.spp} spp vs Mitsuba {row['reference']['spp']} spp"))
     blended = points[points["method"] == "kdtrace+denoiser-blend"]
     if len(blended):
         margins = blended["psnr"] - blended["input_psnr"]

@@ -58,9 +58,43 @@ from reports.metrics import Metric, write_metrics
 from reports.notes import ReportNote
 from reports.paper_figures import TABLE2, TABLE3, TABLE5, TABLE6
 
-#: Auxiliary buffers of the documented normal + depth variant of the denoiser (Table 2):
-#: the paper's network with 10 input channels instead of 6 (its parameter count is reported).
-VARIANT_AUXILIARY = ("albedo", "normal", "depth")
+
+@dataclasses.dataclass(frozen=True)
+class DenoiserVariant:
+    """A documented variant of the per-scene denoiser, trained and measured beside the paper's net (Table 2).
+
+    Attributes
+    ----------
+    key : str
+        Its key in the measurements and gated metric names (``table2/SCENE/KEY_test_psnr``).
+    label : str
+        What its stage, epochs and history are called (``"LABEL denoiser SCENE"``, ``"SCENE LABEL"``).
+    row : str
+        Its Table 2 model column.
+    scenes_field : str
+        The report profile's field listing the scenes that get it.
+    auxiliary : tuple of str
+        Its auxiliary input buffers.
+    demodulate : bool
+        Albedo demodulation (:class:`reconstruction.models.Denoiser`).
+    """
+
+    key: str
+    label: str
+    row: str
+    scenes_field: str
+    auxiliary: tuple[str, ...]
+    demodulate: bool = False
+
+
+#: The documented variants: the paper's network fed albedo, normal and depth (10 input channels
+#: instead of 6, its parameter count reported), and the paper's network on albedo-demodulated
+#: colour (the same 95,107 parameters).
+DENOISER_VARIANTS = (
+    DenoiserVariant("normal_depth", "normal+depth", "per-scene +normal+depth", "variant_scenes",
+                    ("albedo", "normal", "depth")),
+    DenoiserVariant("demodulated", "demodulated", "per-scene demodulated", "demodulated_scenes", ("albedo",), True),
+)
 
 #: Output stems, each written as ``.md`` and ``.csv``.
 TABLES = ("table2", "table3", "table5", "table6", "quality")
@@ -193,8 +227,9 @@ def _measure(config: Config, profile_name: str, fresh: bool, progress: bool,
     far = profile.far_unseen_scene
     started = time.time() - 1.0  # file times have coarse resolution on some systems
     stages: list[Stage] = []
-    variants = list(profile.variant_scenes)
-    steps = len(scenes) + bool(unseen) + bool(far) + len(scenes) + len(variants) + 2 + 2 * len(scenes) + 1
+    variants = {variant: list(getattr(profile, variant.scenes_field)) for variant in DENOISER_VARIANTS}
+    steps = (len(scenes) + bool(unseen) + bool(far) + len(scenes) + sum(map(len, variants.values())) + 2
+             + 2 * len(scenes) + 1)
     bar = tqdm(total=steps, unit="step", desc=f"reconstruction ({profile_name})", disable=not progress)
 
     def step(label: str) -> None:
@@ -212,13 +247,16 @@ def _measure(config: Config, profile_name: str, fresh: bool, progress: bool,
         models[name] = _run_stage(stages, f"denoiser {name}", started,
                                   lambda name=name: train_denoiser([name], recon, progress=False), _model_made)
         bar.update()
-    variant_models = {}
-    for name in variants:
-        step(f"normal+depth denoiser {name}")
-        variant_models[name] = _run_stage(
-            stages, f"normal+depth denoiser {name}", started,
-            lambda name=name: train_denoiser([name], recon, auxiliary=VARIANT_AUXILIARY, progress=False), _model_made)
-        bar.update()
+    variant_models: dict[DenoiserVariant, dict[str, Any]] = {variant: {} for variant in DENOISER_VARIANTS}
+    for variant, names in variants.items():
+        for name in names:
+            step(f"{variant.label} denoiser {name}")
+            variant_models[variant][name] = _run_stage(
+                stages, f"{variant.label} denoiser {name}", started,
+                lambda name=name, variant=variant: train_denoiser([name], recon, auxiliary=variant.auxiliary,
+                                                                  demodulate=variant.demodulate, progress=False),
+                _model_made)
+            bar.update()
     step("mixed denoiser")
     mixed = _run_stage(stages, "mixed denoiser", started, lambda: train_denoiser(scenes, recon.mixed, progress=False),
                        _model_made)
@@ -241,10 +279,11 @@ def _measure(config: Config, profile_name: str, fresh: bool, progress: bool,
             "superres": evaluate.superres_quality(superres.model, dataset, "test", recon.superres_downsample),
             "reference_noise": reference_noise(dataset, "test", recon.spp, recon.reference_spp),
         }
-        if name in variant_models:
-            quality[name]["normal_depth"] = {
-                split: evaluate.denoiser_quality(variant_models[name].model, dataset, split, VARIANT_AUXILIARY,
-                                                 with_oidn=False)["ours"] for split in ("train", "validation", "test")}
+        for variant, trained in variant_models.items():
+            if name in trained:
+                quality[name][variant.key] = {
+                    split: evaluate.denoiser_quality(trained[name].model, dataset, split, variant.auxiliary,
+                                                     with_oidn=False)["ours"] for split in ("train", "validation", "test")}
         bar.update()
     unseen_quality = {}
     for role, name in (("unseen", unseen), ("far", far)):
@@ -291,20 +330,24 @@ def _measure(config: Config, profile_name: str, fresh: bool, progress: bool,
         "unseen": unseen, "frame": [profile.frame_width, profile.frame_height], "frame_spp": profile.frame_spp,
         "stages": [dataclasses.asdict(s) for s in stages],
         "best_epochs": {**{name: models[name].best_epoch for name in scenes}, "mixed": mixed.best_epoch,
-                        **{f"{name} normal+depth": variant_models[name].best_epoch for name in variants},
+                        **{f"{name} {variant.label}": result.best_epoch
+                           for variant, trained in variant_models.items() for name, result in trained.items()},
                         "superres": superres.best_epoch},
         "epochs": recon.epochs,
         "parameters": {"denoiser": parameter_count(mixed.model), "superres": parameter_count(superres.model),
-                       **({"normal_depth_denoiser": parameter_count(next(iter(variant_models.values())).model)}
-                          if variant_models else {})},
-        "variant_scenes": variants,
+                       **{f"{variant.key}_denoiser": parameter_count(next(iter(trained.values())).model)
+                          for variant, trained in variant_models.items() if trained}},
+        **{variant.scenes_field: variants[variant] for variant in DENOISER_VARIANTS},
         "quality": quality, "unseen_quality": unseen_quality.get("unseen"), "photos": photos, "timing": timing,
         "far": far, "far_quality": unseen_quality.get("far"),
         "histories": {**{name: models[name].history for name in scenes}, "mixed": mixed.history,
-                      **{f"{name} normal+depth": variant_models[name].history for name in variants},
+                      **{f"{name} {variant.label}": result.history
+                         for variant, trained in variant_models.items() for name, result in trained.items()},
                       "superres": superres.history},
     }, {"datasets": datasets, "models": {name: models[name].model for name in scenes}, "mixed": mixed.model,
-        "superres": superres.model}
+        "superres": superres.model,
+        "variants": {variant.key: {name: result.model for name, result in trained.items()}
+                     for variant, trained in variant_models.items()}}
 
 
 # ------------------------------------------------------------------ tables
@@ -345,16 +388,16 @@ def _table2(m: dict) -> list[dict]:
                          "paper_test_psnr": paper.get("test_psnr") if model == "ours" else None,
                          "paper_test_rmse": paper.get("test_rmse") if model == "ours" else None,
                          "model_source": _reused(m["stages"], f"denoiser {name}" if model == "ours" else "mixed denoiser")})
-        if "normal_depth" in q:
-            variant, test = q["normal_depth"], q["ours"]["test"]
+        for kind in (v for v in DENOISER_VARIANTS if v.key in q):
+            variant, test = q[kind.key], q["ours"]["test"]
             oidn = test.get("oidn", {}).get("psnr")
-            rows.append({"scene": name, "model": "per-scene +normal+depth", "train_psnr": variant["train"]["psnr"],
+            rows.append({"scene": name, "model": kind.row, "train_psnr": variant["train"]["psnr"],
                          "validation_psnr": variant["validation"]["psnr"], "test_psnr": variant["test"]["psnr"],
                          "test_rmse": variant["test"]["rmse"], "noisy_test_psnr": test["noisy"]["psnr"],
                          "gain_over_noisy": variant["test"]["psnr"] - test["noisy"]["psnr"], "oidn_test_psnr": oidn,
                          "minus_oidn": None if oidn is None else variant["test"]["psnr"] - oidn,
                          "test_views": q["views"]["test"],
-                         "model_source": _reused(m["stages"], f"normal+depth denoiser {name}")})
+                         "model_source": _reused(m["stages"], f"{kind.label} denoiser {name}")})
     from reconstruction.evaluate import combine
 
     pooled = {split: combine([m["quality"][n]["mixed"][split] for n in m["scenes"]]) for split in ("train", "validation", "test")}
@@ -518,7 +561,10 @@ _TITLES = {
                "test set). Paper figures beside ours where the paper has the scene. `per-scene +normal+depth` "
                "(profile `variant_scenes`): the documented variant fed albedo, normal and depth ({variant_parameters} "
                "parameters against the paper network's {parameters}), trained and measured like the per-scene model "
-               "on the same views."),
+               "on the same views. `per-scene demodulated` (profile `demodulated_scenes`): the paper's network "
+               "({demodulated_parameters} parameters) denoising the noisy colour divided by the albedo and "
+               "multiplying its output back (`reconstruction.models.Denoiser(demodulate=True)`), trained and measured "
+               "the same way."),
     "table3": ("Table 3 — the mixed model on each scene and on a scene it never saw",
                "`psnr_difference` = per-scene model minus mixed model on the same test views (positive: the "
                "per-scene model is better, as in the paper). The unseen scene is measured on all its views, none "
@@ -547,7 +593,8 @@ def _header(stem: str, m: dict, provenance: dict, reconstruction: Any) -> str:
     title, note = _TITLES[stem]
     note = note.format(downsample=reconstruction.superres_downsample, spp=m["frame_spp"],
                        parameters=m["parameters"]["denoiser"],
-                       variant_parameters=m["parameters"].get("normal_depth_denoiser", "no"))
+                       variant_parameters=m["parameters"].get("normal_depth_denoiser", "no"),
+                       demodulated_parameters=m["parameters"].get("demodulated_denoiser", "no"))
     machine = provenance["machine"]
     from reconstruction.train import resolve_precision
 
@@ -599,7 +646,7 @@ def write_figures(m: dict, objects: dict[str, Any], config: Config, out_dir: Pat
 
     Figure 4: every model's training curves. Per reconstruction scene, one test view
     (:func:`reports.figures.scene_figures`: the first in name order): noisy / per-scene /
-    mixed / OIDN / reference, and bicubic / ours / reference superresolution; per
+    mixed / (demodulated variant, where trained) / OIDN / reference, and bicubic / ours / reference superresolution; per
     never-seen scene, noisy / mixed / OIDN / reference on its first view.
     """
     from reports.figures import markdown_links, scene_figures, training_curves
@@ -607,9 +654,11 @@ def write_figures(m: dict, objects: dict[str, Any], config: Config, out_dir: Pat
     recon = config.reconstruction.profile(m["reconstruction_profile"])
     paths = {"training": training_curves(m["histories"], out_dir / "figures" / "training.png")}
     for name in m["scenes"]:
-        paths.update(scene_figures(name, objects["datasets"][name], {"ours": objects["models"][name],
-                                                                     "mixed": objects["mixed"]},
-                                   objects["superres"], out_dir, downsample=recon.superres_downsample))
+        demodulated = objects.get("variants", {}).get("demodulated", {})
+        panels = {"ours": objects["models"][name], "mixed": objects["mixed"],
+                  **({"ours demodulated": demodulated[name]} if name in demodulated else {})}
+        paths.update(scene_figures(name, objects["datasets"][name], panels, objects["superres"], out_dir,
+                                   downsample=recon.superres_downsample))
     for role in ("unseen", "far"):
         name = m["unseen"] if role == "unseen" else m.get("far")
         if name:
@@ -638,9 +687,9 @@ def metrics_of(m: dict) -> list[Metric]:
                        "mixed denoiser, this scene's test views, dB"),
                 Metric(f"table5/{name}/ours_test_psnr", "psnr", q["superres"]["ours"]["psnr"],
                        "superresolution 2x, test views, dB")]
-        if "normal_depth" in q:
-            out.append(Metric(f"table2/{name}/normal_depth_test_psnr", "psnr", q["normal_depth"]["test"]["psnr"],
-                              "per-scene normal + depth variant, test views, dB"))
+        for variant in (v for v in DENOISER_VARIANTS if v.key in q):
+            out.append(Metric(f"table2/{name}/{variant.key}_test_psnr", "psnr", q[variant.key]["test"]["psnr"],
+                              f"per-scene {variant.label} variant, test views, dB"))
         t = m["timing"][name]
         out += [Metric(f"table6/{name}/oidn_over_ours_seconds", "ratio", t["denoise"]["oidn_over_ours"],
                        f"OIDN seconds / ours ({t['denoise_option']}), same frame"),

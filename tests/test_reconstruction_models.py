@@ -19,6 +19,7 @@ from reconstruction.inference import (
 )
 from reconstruction.loss import EdgeAwareLoss, LaplacianOfGaussian, normalise_edges
 from reconstruction.models import (
+    DEMODULATION_EPSILON,
     POOLING_MULTIPLE,
     Denoiser,
     Superresolution,
@@ -59,6 +60,28 @@ def test_untrained_residual_denoiser_returns_its_noisy_input_and_the_direct_form
     assert direct.shape == (2, 3, 40, 24) and not torch.allclose(direct, x[:, :3], atol=1e-3)
     assert count_parameters(Denoiser(residual=False)) == count_parameters(Denoiser()) == 95_107
     assert Denoiser(residual=False).config != Denoiser().config  # a checkpoint of one is refused by the other
+
+
+def test_demodulated_denoiser_is_the_same_net_between_a_division_and_a_multiplication_by_the_albedo():
+    torch.manual_seed(3)
+    x = torch.rand(2, 6, 40, 24) * 3.0
+    x[:, 3:] = torch.rand(2, 3, 40, 24)
+    x[0, 3:, :5] = 0.0  # black (or mirror) surfaces: albedo 0, divided by epsilon only
+    demodulated = Denoiser(demodulate=True)
+    with torch.inference_mode():
+        assert torch.allclose(demodulated(x), x[:, :3], atol=1e-5)  # untrained: the identity, as the paper net
+        _randomise(demodulated.out)
+        plain = Denoiser()
+        plain.load_state_dict(demodulated.state_dict())  # same parameters, same names
+        # the obvious reference: demodulate in linear radiance, run the plain net, remodulate
+        scale = x[:, 3:6] + DEMODULATION_EPSILON
+        inner = torch.cat([hdr.encode(hdr.decode(x[:, :3]) / scale), x[:, 3:]], dim=1)
+        expected = hdr.encode(hdr.decode(plain(inner)) * scale)
+        assert torch.allclose(demodulated(x), expected, atol=1e-5)
+        assert not torch.allclose(plain(x), expected, atol=1e-3)
+    assert count_parameters(demodulated) == 95_107
+    assert demodulated.config != Denoiser().config  # a checkpoint of one is refused by the other
+    assert "demodulate" not in Denoiser().config["kwargs"]  # the paper net's cache keys are unchanged
 
 
 def test_parameter_counts_match_the_paper():

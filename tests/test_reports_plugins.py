@@ -138,7 +138,8 @@ def _reconstruction_stand_in(config, profile_name, fresh, progress, denoisers=()
     return m, {}
 
 
-def _sweep_stand_in(kind, version, measure_scene, config, profile_name, out_dir, fresh, progress, blend_spp=()):
+def _sweep_stand_in(kind, version, measure_scene, config, profile_name, out_dir, fresh, progress, blend_spp=(),
+                    demodulated_scenes=()):
     """A synthetic row of our methods (each spp quadruples the seconds and adds 6 dB)."""
     points = []
     for method in et.METHODS:

@@ -121,6 +121,7 @@ reconstruction_profile = "tiny"
 reconstruction_scenes = ["cbox-original", "cbox-sphere"]
 unseen_scene = "cbox-empty"
 variant_scenes = ["cbox-original"]
+demodulated_scenes = ["cbox-sphere"]
 
 [reconstruction.profiles.tiny]
 positions = 1
@@ -156,17 +157,24 @@ def test_generate_end_to_end_and_reuse(tmp_path, monkeypatch, shared_scenes):
     second = time.perf_counter() - started
     print(f"\n[tiny] first run {first:.1f} s, rerun {second:.1f} s")
     table2 = (tmp_path / "out" / "table2.md").read_text()
-    assert "Reused from the cache: 8 of 8 datasets and models." in table2
+    assert "Reused from the cache: 9 of 9 datasets and models." in table2
     precision, why = resolve_precision(config.reconstruction.profile("tiny").precision)
     assert f"Training arithmetic on this machine: {why or precision}." in table2  # an fp32 fallback says why
-    variant = pd.read_csv(tmp_path / "out" / "table2.csv").set_index(["scene", "model"]).loc[
-        ("cbox-original", "per-scene +normal+depth")]
-    assert np.isfinite(variant["test_psnr"]) and variant["noisy_test_psnr"] > 0
+    rows = pd.read_csv(tmp_path / "out" / "table2.csv").set_index(["scene", "model"])
+    for scene, model in (("cbox-original", "per-scene +normal+depth"), ("cbox-sphere", "per-scene demodulated")):
+        variant = rows.loc[(scene, model)]
+        assert np.isfinite(variant["test_psnr"]) and variant["noisy_test_psnr"] > 0
+    assert ("cbox-sphere", "per-scene +normal+depth") not in rows.index
+    assert ("cbox-original", "per-scene demodulated") not in rows.index
     from reconstruction.models import Denoiser
     from reconstruction.train import parameter_count
 
-    wider = parameter_count(Denoiser(rt.VARIANT_AUXILIARY))
+    normal_depth = next(v for v in rt.DENOISER_VARIANTS if v.key == "normal_depth")
+    wider = parameter_count(Denoiser(normal_depth.auxiliary))
     assert wider > 95107 and f"({wider} parameters against the paper network's 95107)" in table2
+    assert "the paper's network (95107 parameters) denoising the noisy colour divided by the albedo" in table2
+    assert {m.name for m in metrics} >= {"table2/cbox-original/normal_depth_test_psnr",
+                                         "table2/cbox-sphere/demodulated_test_psnr"}
     assert second < first
     psnrs = {m.name: m.value for m in metrics if m.kind == "psnr"}
     assert psnrs == {m.name: m.value for m in again if m.kind == "psnr"}  # same cached models, same numbers
