@@ -136,6 +136,8 @@ class Denoiser(nn.Module):
         kwargs = {"auxiliary": list(self.auxiliary), "residual": self.residual}
         if self.demodulate:  # only when set, so the paper net's cache keys and checkpoints stay valid
             kwargs["demodulate"] = True
+            # what the cache key needs beyond the constructor: models trained with a plain clamp differ
+            return {"architecture": "Denoiser", "kwargs": kwargs, "clamp": "straight-through"}
         return {"architecture": "Denoiser", "kwargs": kwargs}
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
@@ -173,7 +175,13 @@ class Denoiser(nn.Module):
         correction = self.out(x)[..., :height, :width]
         output = noisy + correction if self.residual else correction
         if self.demodulate:
-            output = torch.log1p(torch.expm1(output.float().clamp_min(0)) * scale)
+            output = output.float()
+            # Radiance is non-negative, so negative outputs are clamped to 0, but the gradient
+            # passes the clamp unchanged (straight-through): with a plain clamp, a net whose
+            # outputs all turned negative got no gradient and stayed dead (crytek-sponza, standard
+            # data, 2026-12-04: validation loss frozen from the first epoch, every pixel black).
+            output = output + (output.clamp_min(0) - output).detach()
+            output = torch.log1p(torch.expm1(output) * scale)
         return output
 
 

@@ -144,9 +144,10 @@ def load_checkpoint(path: str | Path, model: nn.Module, weights: str = "model") 
     """
     payload = read_checkpoint(path)
     expected = architecture(model)
-    found = {"architecture": payload.get("architecture"), "kwargs": payload.get("kwargs")}
+    found = {key: payload.get(key) for key in ("architecture", "kwargs", *expected)}
     if found != expected:
-        raise ValueError(f"{path} holds a {found['architecture']} {found['kwargs']} checkpoint; "
+        raise ValueError(f"{path} holds a {found['architecture']} {found['kwargs']} checkpoint "
+                         f"({ {k: v for k, v in found.items() if k not in ('architecture', 'kwargs')} }); "
                          f"the model is a {expected['architecture']} {expected['kwargs']}")
     if payload.get("parameters") != parameter_count(model):
         raise ValueError(f"{path} has {payload.get('parameters')} parameters; the model has {parameter_count(model)}")

@@ -80,6 +80,14 @@ def test_demodulated_denoiser_is_the_same_net_between_a_division_and_a_multiplic
         assert torch.allclose(demodulated(x), expected, atol=1e-5)
         assert not torch.allclose(plain(x), expected, atol=1e-3)
     assert count_parameters(demodulated) == 95_107
+    # a net whose outputs all turned negative still learns: the clamp passes the gradient
+    dead = Denoiser(demodulate=True)
+    torch.nn.init.constant_(dead.out.bias, -50.0)
+    target = torch.full((2, 3, 40, 24), 0.5)
+    loss = torch.nn.functional.mse_loss(dead(x), target)
+    assert torch.equal(dead(x).detach(), torch.zeros_like(target))
+    loss.backward()
+    assert dead.out.bias.grad is not None and bool((dead.out.bias.grad < 0).all())
     assert demodulated.config != Denoiser().config  # a checkpoint of one is refused by the other
     assert "demodulate" not in Denoiser().config["kwargs"]  # the paper net's cache keys are unchanged
 
