@@ -36,12 +36,13 @@ channels) only ``inc`` grows, to 10·32·9 + 32 = 2,912, giving 96,259 parameter
 
 Albedo demodulation (``demodulate=True``, a documented variant; off by default, the count
 stays 95,107): the same network sees the noisy colour divided by the diffuse map,
-``encode(decode(noisy) / (albedo + ε))`` with ε = :data:`DEMODULATION_EPSILON`, and its
-output is multiplied back, ``encode(decode(out) · (albedo + ε))``, so input and output stay
+``encode(decode(noisy) / s)`` with ``s = albedo + ε`` (ε = :data:`DEMODULATION_EPSILON`),
+and its output is multiplied back, ``encode(decode(out) · s)``, so input and output stay
 in the paper net's encoded space and every caller is unchanged. Texture and wall colour
 then pass through the multiplication untouched and the net only smooths the illumination
-(the irradiance-demodulation of SVGF and of production denoisers); ε keeps black and
-specular surfaces (albedo 0) finite. All parameter-free.
+(the irradiance-demodulation of SVGF and of production denoisers). Where the albedo is
+below :data:`DEMODULATION_FLOOR` in every channel (emitters, sky, background, mirrors)
+``s = 1``. All parameter-free.
 
 The five poolings need sides divisible by 32: :meth:`Denoiser.forward` pads the bottom
 and right edges by edge replication up to the next multiple of 32 and crops the result
@@ -72,9 +73,14 @@ POOLING_MULTIPLE = 32
 DEPTH = 5
 #: Filters of every hidden layer.
 FILTERS = 32
-#: Added to the albedo before the colour is divided by it (``demodulate=True``): keeps black
-#: and mirror surfaces (albedo 0) finite while a dark diffuse albedo of 0.05 still divides by 0.06.
+#: Added to the albedo before the colour is divided by it (``demodulate=True``): keeps a dark
+#: diffuse albedo of 0.03 finite and well scaled (it divides by 0.04).
 DEMODULATION_EPSILON = 0.01
+#: Pixels whose largest albedo channel is below this are not demodulated (divided by 1): they
+#: show what has no diffuse albedo, emitters, the sky, the background and mirrors. Dividing the
+#: sky of crytek-sponza (radiance ~1, albedo 0) by 0.01 made it the whole of the loss and the
+#: net failed (27.3 dB on the standard test views, below its 35.9 dB input; 2026-12-04).
+DEMODULATION_FLOOR = 0.02
 
 
 def count_parameters(model: nn.Module) -> int:
@@ -137,7 +143,8 @@ class Denoiser(nn.Module):
         if self.demodulate:  # only when set, so the paper net's cache keys and checkpoints stay valid
             kwargs["demodulate"] = True
             # what the cache key needs beyond the constructor: models trained with a plain clamp differ
-            return {"architecture": "Denoiser", "kwargs": kwargs, "clamp": "straight-through"}
+            return {"architecture": "Denoiser", "kwargs": kwargs, "clamp": "straight-through",
+                    "floor": DEMODULATION_FLOOR, "epsilon": DEMODULATION_EPSILON}
         return {"architecture": "Denoiser", "kwargs": kwargs}
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
@@ -158,7 +165,10 @@ class Denoiser(nn.Module):
         height, width = x.shape[-2:]
         if self.demodulate:
             # fp32 whatever the autocast: expm1/log1p of bf16 values would lose the low bits
-            scale = x[:, 3:6].float() + DEMODULATION_EPSILON
+            albedo = x[:, 3:6].float()
+            # what has no albedo (emitters, sky, background, mirrors) passes through undemodulated
+            scale = torch.where(albedo.amax(dim=1, keepdim=True) < DEMODULATION_FLOOR, 1.0,
+                                albedo + DEMODULATION_EPSILON)
             x = torch.cat([torch.log1p(torch.expm1(x[:, :3].float().clamp_min(0)) / scale), x[:, 3:].float()], dim=1)
         noisy = x[:, :3]
         pad_h, pad_w = (-height) % POOLING_MULTIPLE, (-width) % POOLING_MULTIPLE

@@ -20,6 +20,7 @@ from reconstruction.inference import (
 from reconstruction.loss import EdgeAwareLoss, LaplacianOfGaussian, normalise_edges
 from reconstruction.models import (
     DEMODULATION_EPSILON,
+    DEMODULATION_FLOOR,
     POOLING_MULTIPLE,
     Denoiser,
     Superresolution,
@@ -66,7 +67,8 @@ def test_demodulated_denoiser_is_the_same_net_between_a_division_and_a_multiplic
     torch.manual_seed(3)
     x = torch.rand(2, 6, 40, 24) * 3.0
     x[:, 3:] = torch.rand(2, 3, 40, 24)
-    x[0, 3:, :5] = 0.0  # black (or mirror) surfaces: albedo 0, divided by epsilon only
+    x[0, 3:, :5] = 0.0  # what has no albedo (sky, emitters, mirrors): not demodulated
+    x[1, 3:, :5] = 0.03  # a dark diffuse surface: demodulated
     demodulated = Denoiser(demodulate=True)
     with torch.inference_mode():
         assert torch.allclose(demodulated(x), x[:, :3], atol=1e-5)  # untrained: the identity, as the paper net
@@ -75,11 +77,13 @@ def test_demodulated_denoiser_is_the_same_net_between_a_division_and_a_multiplic
         plain.load_state_dict(demodulated.state_dict())  # same parameters, same names
         # the obvious reference: demodulate in linear radiance, run the plain net, remodulate
         scale = x[:, 3:6] + DEMODULATION_EPSILON
+        scale[0, :, :5] = 1.0
         inner = torch.cat([hdr.encode(hdr.decode(x[:, :3]) / scale), x[:, 3:]], dim=1)
         expected = hdr.encode(hdr.decode(plain(inner)) * scale)
         assert torch.allclose(demodulated(x), expected, atol=1e-5)
         assert not torch.allclose(plain(x), expected, atol=1e-3)
     assert count_parameters(demodulated) == 95_107
+    assert 0.03 > DEMODULATION_FLOOR
     # a net whose outputs all turned negative still learns: the clamp passes the gradient
     dead = Denoiser(demodulate=True)
     torch.nn.init.constant_(dead.out.bias, -50.0)
