@@ -65,6 +65,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from reconstruction import hdr
+
 #: Channels of each denoiser input, in stacking order after the noisy RGB.
 AUXILIARY_CHANNELS = {"albedo": 3, "normal": 3, "depth": 1}
 #: Side multiple the denoiser's five 2×2 poolings need.
@@ -139,13 +141,12 @@ class Denoiser(nn.Module):
     @property
     def config(self) -> dict:
         """Constructor arguments and identity, for checkpoints: ``Denoiser(**config["kwargs"])``."""
-        kwargs = {"auxiliary": list(self.auxiliary), "residual": self.residual}
+        config = {"architecture": "Denoiser", "kwargs": {"auxiliary": list(self.auxiliary), "residual": self.residual}}
         if self.demodulate:  # only when set, so the paper net's cache keys and checkpoints stay valid
-            kwargs["demodulate"] = True
+            config["kwargs"]["demodulate"] = True
             # what the cache key needs beyond the constructor: models trained with a plain clamp differ
-            return {"architecture": "Denoiser", "kwargs": kwargs, "clamp": "straight-through",
-                    "floor": DEMODULATION_FLOOR, "epsilon": DEMODULATION_EPSILON}
-        return {"architecture": "Denoiser", "kwargs": kwargs}
+            config.update(clamp="straight-through", floor=DEMODULATION_FLOOR, epsilon=DEMODULATION_EPSILON)
+        return config
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """Denoise a batch.
@@ -169,7 +170,7 @@ class Denoiser(nn.Module):
             # what has no albedo (emitters, sky, background, mirrors) passes through undemodulated
             scale = torch.where(albedo.amax(dim=1, keepdim=True) < DEMODULATION_FLOOR, 1.0,
                                 albedo + DEMODULATION_EPSILON)
-            x = torch.cat([torch.log1p(torch.expm1(x[:, :3].float().clamp_min(0)) / scale), x[:, 3:].float()], dim=1)
+            x = torch.cat([torch.log1p(hdr.decode(x[:, :3].float()) / scale), x[:, 3:].float()], dim=1)
         noisy = x[:, :3]
         pad_h, pad_w = (-height) % POOLING_MULTIPLE, (-width) % POOLING_MULTIPLE
         if pad_h or pad_w:

@@ -614,34 +614,36 @@ def measure_scene(name: str, config: Config, profile_name: str, models: Reconstr
             image, seconds = mitsuba.render(spp, mitsuba_seed(profile.seed, spp))
             points.append(_point("mitsuba", spp, width, height, seconds, [], image, reference.rgb))
 
-            frame, seconds = ours(spp, width, height, aux=True)
-            frame_seconds = seconds
-            input_psnr = errors(frame.rgb, reference.rgb)["psnr"]
+            frame, frame_seconds = ours(spp, width, height, aux=True)
+            frame_psnr = errors(frame.rgb, reference.rgb)["psnr"]
             denoised, steps = timed_reconstruction([lambda f: denoise_frame(denoiser, f)], frame)
-            points.append(_point("kdtrace+denoiser", spp, width, height, seconds, steps, denoised, reference.rgb,
-                                 input_psnr))
+            points.append(_point("kdtrace+denoiser", spp, width, height, frame_seconds, steps, denoised, reference.rgb,
+                                 frame_psnr))
             if name in models.blends:
                 image, blend_seconds, blend_steps, weight, cap = blended(models.blends[name], denoiser, spp, frame,
-                                                                         denoised, steps, seconds)
+                                                                         denoised, steps, frame_seconds)
                 points.append(_point("kdtrace+denoiser-blend", spp, width, height, blend_seconds, blend_steps, image,
-                                     reference.rgb, input_psnr, weight=weight, frame_cap=cap))
+                                     reference.rgb, frame_psnr, weight=weight, frame_cap=cap))
             image, steps = timed_reconstruction([lambda f: oidn(f.rgb, f.albedo, f.normal)], frame)
-            points.append(_point("kdtrace+oidn", spp, width, height, seconds, steps, image, reference.rgb, input_psnr))
+            points.append(_point("kdtrace+oidn", spp, width, height, frame_seconds, steps, image, reference.rgb,
+                                 frame_psnr))
 
-            buffers, seconds = mitsuba.render(spp, mitsuba_seed(profile.seed, spp), aov=True)
+            buffers, mitsuba_seconds = mitsuba.render(spp, mitsuba_seed(profile.seed, spp), aov=True)
             mitsuba_frame = AuxFrame(buffers[..., :3], buffers[..., 3:6], buffers[..., 6:9])
-            input_psnr = errors(mitsuba_frame.rgb, reference.rgb)["psnr"]
+            mitsuba_psnr = errors(mitsuba_frame.rgb, reference.rgb)["psnr"]
             image, steps = timed_reconstruction([lambda f: denoise_frame(denoiser, f)], mitsuba_frame)
-            points.append(_point("mitsuba+denoiser", spp, width, height, seconds, steps, image, reference.rgb,
-                                 input_psnr))
+            points.append(_point("mitsuba+denoiser", spp, width, height, mitsuba_seconds, steps, image, reference.rgb,
+                                 mitsuba_psnr))
             image, steps = timed_reconstruction([lambda f: oidn(f.rgb, f.albedo, f.normal)], mitsuba_frame)
-            points.append(_point("mitsuba+oidn", spp, width, height, seconds, steps, image, reference.rgb, input_psnr))
+            points.append(_point("mitsuba+oidn", spp, width, height, mitsuba_seconds, steps, image, reference.rgb,
+                                 mitsuba_psnr))
             if name in models.demodulated:
-                for method, source, render_seconds in (("kdtrace+demodulated", frame, frame_seconds),
-                                                       ("mitsuba+demodulated", mitsuba_frame, seconds)):
+                for method, source, render_seconds, input_psnr in (
+                        ("kdtrace+demodulated", frame, frame_seconds, frame_psnr),
+                        ("mitsuba+demodulated", mitsuba_frame, mitsuba_seconds, mitsuba_psnr)):
                     image, steps = timed_reconstruction([lambda f: denoise_frame(models.demodulated[name], f)], source)
                     points.append(_point(method, spp, width, height, render_seconds, steps, image, reference.rgb,
-                                         errors(source.rgb, reference.rgb)["psnr"]))
+                                         input_psnr))
 
             half, seconds = ours(spp, width // 2, height // 2, aux=True)
             image, steps = timed_reconstruction([lambda f: denoise_frame(denoiser, f),

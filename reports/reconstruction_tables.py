@@ -653,8 +653,8 @@ def write_figures(m: dict, objects: dict[str, Any], config: Config, out_dir: Pat
 
     recon = config.reconstruction.profile(m["reconstruction_profile"])
     paths = {"training": training_curves(m["histories"], out_dir / "figures" / "training.png")}
+    demodulated = objects.get("variants", {}).get("demodulated", {})
     for name in m["scenes"]:
-        demodulated = objects.get("variants", {}).get("demodulated", {})
         panels = {"ours": objects["models"][name], "mixed": objects["mixed"],
                   **({"ours demodulated": demodulated[name]} if name in demodulated else {})}
         paths.update(scene_figures(name, objects["datasets"][name], panels, objects["superres"], out_dir,
