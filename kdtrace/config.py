@@ -283,6 +283,10 @@ class ReconstructionProfile:
         (0: run all ``epochs``).
     mixed_epochs : int
         Epochs of the mixed model, whose epoch holds every scene's crops (0: ``epochs``).
+    denoiser_edge_range_floor : float
+        Smallest target LoG range the denoiser loss's edge maps are normalised by
+        (:class:`reconstruction.loss.EdgeAwareLoss`; default
+        :data:`reconstruction.loss.DENOISER_RANGE_FLOOR`, which says how it was chosen).
     seed : int
         Seed of camera positions, render seeds, crops, splits, initialisation and shuffling.
     """
@@ -312,6 +316,7 @@ class ReconstructionProfile:
     precision: str = "fp32"
     patience: int = 0
     mixed_epochs: int = 0
+    denoiser_edge_range_floor: float = 0.1
     seed: int = 20261122
 
     @property
@@ -337,6 +342,8 @@ class ReconstructionProfile:
             raise ValueError("reconstruction.mixed_epochs must be >= 0 (0: the same as epochs)")
         if self.patience < 0:
             raise ValueError("reconstruction.patience must be >= 0 (0: no early stopping)")
+        if not self.denoiser_edge_range_floor > 0:
+            raise ValueError("reconstruction.denoiser_edge_range_floor must be > 0")
         if self.superres_crop_size % 2:
             raise ValueError("reconstruction.superres_crop_size must be even (2x downsampling)")
         if not (0.0 <= self.region_fraction and 0.0 <= self.min_coverage <= 1.0 and self.learning_rate > 0.0):

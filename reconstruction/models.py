@@ -36,8 +36,9 @@ channels) only ``inc`` grows, to 10·32·9 + 32 = 2,912, giving 96,259 parameter
 
 Albedo demodulation (``demodulate=True``, a documented variant; off by default, the count
 stays 95,107): the same network sees the noisy colour divided by the diffuse map,
-``encode(decode(noisy) / s)`` with ``s = albedo + ε`` (ε = :data:`DEMODULATION_EPSILON`),
-and its output is multiplied back, ``encode(decode(out) · s)``, so input and output stay
+``encode(decode(noisy) / s)`` with ``s = ε + (1 − ε)·albedo`` (ε = :data:`DEMODULATION_EPSILON`,
+so s ∈ [ε, 1]), and its output is multiplied back, ``encode(decode(out) · s)``
+(:func:`remodulate`; negative outputs stay negative there), so input and output stay
 in the paper net's encoded space and every caller is unchanged. Texture and wall colour
 then pass through the multiplication untouched and the net only smooths the illumination
 (the irradiance-demodulation of SVGF and of production denoisers). Where the albedo is
@@ -75,14 +76,40 @@ POOLING_MULTIPLE = 32
 DEPTH = 5
 #: Filters of every hidden layer.
 FILTERS = 32
-#: Added to the albedo before the colour is divided by it (``demodulate=True``): keeps a dark
-#: diffuse albedo of 0.03 finite and well scaled (it divides by 0.04).
+#: The smallest divisor of the colour (``demodulate=True``, ``s = ε + (1 − ε)·albedo``): keeps a
+#: dark diffuse albedo of 0.03 finite and well scaled (it divides by 0.04).
 DEMODULATION_EPSILON = 0.01
 #: Pixels whose largest albedo channel is below this are not demodulated (divided by 1): they
 #: show what has no diffuse albedo, emitters, the sky, the background and mirrors. Dividing the
 #: sky of crytek-sponza (radiance ~1, albedo 0) by 0.01 made it the whole of the loss and the
 #: net failed (27.3 dB on the standard test views, below its 35.9 dB input; 2026-12-04).
 DEMODULATION_FLOOR = 0.02
+
+
+def remodulate(encoded: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
+    """Multiply encoded radiance by ``scale`` in linear radiance: ``log1p(expm1(encoded) · scale)``.
+
+    Parameters
+    ----------
+    encoded : torch.Tensor
+        The demodulated network output in the log1p space; any real value.
+    scale : torch.Tensor
+        In (0, 1], broadcastable to ``encoded``.
+
+    Returns
+    -------
+    torch.Tensor
+        Same shape, finite for every input. For o ≥ 0 it is computed as
+        ``o + log(s + (1 − s)·e^−o)`` (expm1 overflows float32 above 88). A negative o is
+        negative radiance, which :func:`reconstruction.hdr.decode` clamps to 0 anyway; there
+        the map continues linearly with its slope at 0, ``s·o``, so the loss always has a
+        gradient: a clamp stopped training dead (all outputs negative, no gradient), and a
+        straight-through clamp fed the edge loss gradients that did not lower it until the
+        weights grew without bound (quick data, 2026-12-04).
+    """
+    positive = encoded.clamp_min(0.0)
+    return torch.where(encoded >= 0, positive + torch.log(scale + (1.0 - scale) * torch.exp(-positive)),
+                       scale * encoded.clamp_max(0.0))
 
 
 def count_parameters(model: nn.Module) -> int:
@@ -144,8 +171,9 @@ class Denoiser(nn.Module):
         config = {"architecture": "Denoiser", "kwargs": {"auxiliary": list(self.auxiliary), "residual": self.residual}}
         if self.demodulate:  # only when set, so the paper net's cache keys and checkpoints stay valid
             config["kwargs"]["demodulate"] = True
-            # what the cache key needs beyond the constructor: models trained with a plain clamp differ
-            config.update(clamp="straight-through", floor=DEMODULATION_FLOOR, epsilon=DEMODULATION_EPSILON)
+            # what the cache key needs beyond the constructor: earlier clamps and scales were other models
+            config.update(output="unclamped", scale="eps+(1-eps)*albedo", floor=DEMODULATION_FLOOR,
+                          epsilon=DEMODULATION_EPSILON)
         return config
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
@@ -169,7 +197,7 @@ class Denoiser(nn.Module):
             albedo = x[:, 3:6].float()
             # what has no albedo (emitters, sky, background, mirrors) passes through undemodulated
             scale = torch.where(albedo.amax(dim=1, keepdim=True) < DEMODULATION_FLOOR, 1.0,
-                                albedo + DEMODULATION_EPSILON)
+                                DEMODULATION_EPSILON + (1.0 - DEMODULATION_EPSILON) * albedo)
             x = torch.cat([torch.log1p(hdr.decode(x[:, :3].float()) / scale), x[:, 3:].float()], dim=1)
         noisy = x[:, :3]
         pad_h, pad_w = (-height) % POOLING_MULTIPLE, (-width) % POOLING_MULTIPLE
@@ -186,13 +214,7 @@ class Denoiser(nn.Module):
         correction = self.out(x)[..., :height, :width]
         output = noisy + correction if self.residual else correction
         if self.demodulate:
-            output = output.float()
-            # Radiance is non-negative, so negative outputs are clamped to 0, but the gradient
-            # passes the clamp unchanged (straight-through): with a plain clamp, a net whose
-            # outputs all turned negative got no gradient and stayed dead (crytek-sponza, standard
-            # data, 2026-12-04: validation loss frozen from the first epoch, every pixel black).
-            output = output + (output.clamp_min(0) - output).detach()
-            output = torch.log1p(torch.expm1(output) * scale)
+            output = remodulate(output.float(), scale)
         return output
 
 

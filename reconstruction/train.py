@@ -484,7 +484,8 @@ def train_denoiser(scene_names: list[str] | tuple[str, ...], profile: str | Reco
         Default :class:`reconstruction.models.Denoiser` with ``auxiliary`` and
         ``demodulate``, initialised after ``torch.manual_seed(profile.seed)``.
     loss_fn : nn.Module, optional
-        Default :class:`reconstruction.loss.EdgeAwareLoss` (sigma 1.4).
+        Default :class:`reconstruction.loss.EdgeAwareLoss` (sigma 1.4, the profile's
+        ``denoiser_edge_range_floor``).
     auxiliary : tuple of str
         Buffers after the noisy RGB in the input.
     directory : Path, optional
@@ -513,7 +514,7 @@ def train_denoiser(scene_names: list[str] | tuple[str, ...], profile: str | Reco
     if loss_fn is None:
         from reconstruction.loss import DENOISER_SIGMA, EdgeAwareLoss
 
-        loss_fn = EdgeAwareLoss(DENOISER_SIGMA)
+        loss_fn = EdgeAwareLoss(DENOISER_SIGMA, profile.denoiser_edge_range_floor)
     directory = _training_dir("denoiser", model, loss_fn, data_hash, profile) if directory is None else Path(directory)
     precision = resolve_precision(profile.precision)[0]
     result = fit(model, loss_fn, data, directory, data_hash, profile.epochs, profile.batch_size,

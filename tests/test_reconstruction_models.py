@@ -7,6 +7,7 @@ import pytest
 import torch
 from scipy.ndimage import gaussian_laplace
 
+from kdtrace.config import DEFAULT_CONFIG
 from reconstruction import hdr, speed
 from reconstruction.inference import (
     DENOISER_HALO,
@@ -17,7 +18,15 @@ from reconstruction.inference import (
     select_fast_inference,
     tile_grid,
 )
-from reconstruction.loss import EdgeAwareLoss, LaplacianOfGaussian, normalise_edges
+from reconstruction.loss import (
+    DENOISER_RANGE_FLOOR,
+    DENOISER_SIGMA,
+    EDGE_RANGE_FLOOR,
+    MSE_WEIGHT,
+    EdgeAwareLoss,
+    LaplacianOfGaussian,
+    normalise_edges,
+)
 from reconstruction.models import (
     DEMODULATION_EPSILON,
     DEMODULATION_FLOOR,
@@ -25,6 +34,7 @@ from reconstruction.models import (
     Denoiser,
     Superresolution,
     count_parameters,
+    remodulate,
     rgb_from_ycbcr,
     superresolve,
     ycbcr_from_rgb,
@@ -76,24 +86,36 @@ def test_demodulated_denoiser_is_the_same_net_between_a_division_and_a_multiplic
         plain = Denoiser()
         plain.load_state_dict(demodulated.state_dict())  # same parameters, same names
         # the obvious reference: demodulate in linear radiance, run the plain net, remodulate
-        scale = x[:, 3:6] + DEMODULATION_EPSILON
+        scale = DEMODULATION_EPSILON + (1 - DEMODULATION_EPSILON) * x[:, 3:6]
         scale[0, :, :5] = 1.0
         inner = torch.cat([hdr.encode(hdr.decode(x[:, :3]) / scale), x[:, 3:]], dim=1)
-        expected = hdr.encode(hdr.decode(plain(inner)) * scale)
-        assert torch.allclose(demodulated(x), expected, atol=1e-5)
-        assert not torch.allclose(plain(x), expected, atol=1e-3)
+        expected = hdr.decode(plain(inner)) * scale  # radiance (negative outputs decode to 0)
+        assert torch.allclose(hdr.decode(demodulated(x)), expected, atol=1e-5, rtol=1e-5)
+        assert not torch.allclose(hdr.decode(plain(x)), expected, atol=1e-3)
     assert count_parameters(demodulated) == 95_107
     assert 0.03 > DEMODULATION_FLOOR
-    # a net whose outputs all turned negative still learns: the clamp passes the gradient
+    # a net whose outputs all turned negative (radiance 0) still learns: no clamp, a gradient everywhere
     dead = Denoiser(demodulate=True)
     torch.nn.init.constant_(dead.out.bias, -50.0)
     target = torch.full((2, 3, 40, 24), 0.5)
     loss = torch.nn.functional.mse_loss(dead(x), target)
-    assert torch.equal(dead(x).detach(), torch.zeros_like(target))
+    assert torch.equal(hdr.decode(dead(x).detach()), torch.zeros_like(target))
     loss.backward()
     assert dead.out.bias.grad is not None and bool((dead.out.bias.grad < 0).all())
     assert demodulated.config != Denoiser().config  # a checkpoint of one is refused by the other
     assert "demodulate" not in Denoiser().config["kwargs"]  # the paper net's cache keys are unchanged
+
+
+def test_remodulate_is_the_multiplication_in_linear_radiance_and_finite_with_a_gradient_everywhere():
+    encoded = torch.tensor([0.0, 1e-4, 0.5, 3.0, 20.0], dtype=torch.float64)
+    scale = torch.tensor([0.01, 0.3, 1.0], dtype=torch.float64)[:, None]
+    # the obvious formula, exact in float64 at these values
+    assert torch.allclose(remodulate(encoded, scale), torch.log1p(torch.expm1(encoded) * scale), rtol=1e-12, atol=1e-15)
+    extreme = torch.tensor([-1e4, -50.0, -1e-3, 100.0, 1e4], requires_grad=True)  # float32: expm1 overflows at 89
+    out = remodulate(extreme, torch.tensor([[0.01], [1.0]]))
+    out.sum().backward()
+    assert bool(torch.isfinite(out).all()) and bool((extreme.grad > 0).all())
+    assert bool((out[:, :3] < 0).all())  # negative radiance stays negative (decode clamps it to 0)
 
 
 def test_parameter_counts_match_the_paper():
@@ -172,6 +194,24 @@ def test_edge_maps_are_normalised_and_safe_on_constant_images():
     loss.backward()
     assert loss.item() == pytest.approx(0.0, abs=1e-10)
     assert torch.isfinite(constant.grad).all()
+
+
+def test_edge_range_floor_bounds_how_much_a_flat_target_amplifies_the_noise_left_in_a_prediction():
+    torch.manual_seed(5)
+    target = torch.full((1, 3, 32, 32), 0.004)  # a flat, dark crop (half of Sponza's have a LoG range < 0.005)
+    prediction = target + 0.002 * torch.randn_like(target)
+    log = LaplacianOfGaussian(DENOISER_SIGMA)
+    edge_mse = torch.mean((log(prediction) - log(target)) ** 2)
+    for floor in (EDGE_RANGE_FLOOR, DENOISER_RANGE_FLOOR):
+        loss = EdgeAwareLoss(DENOISER_SIGMA, floor)
+        assert loss(prediction, target).item() == pytest.approx(
+            MSE_WEIGHT * torch.mean((prediction - target) ** 2).item() + (1 - MSE_WEIGHT) * edge_mse.item() / floor**2,
+            rel=1e-4)
+        assert loss.config["range_floor"] == floor  # another floor is another model's cache key
+    # the profiles that train at scale use the documented value; quick keeps its baselines' one
+    floors = {name: DEFAULT_CONFIG.reconstruction.profile(name).denoiser_edge_range_floor
+              for name in ("quick", "standard", "paper")}
+    assert floors == {"quick": EDGE_RANGE_FLOOR, "standard": DENOISER_RANGE_FLOOR, "paper": DENOISER_RANGE_FLOOR}
 
 
 def test_loss_weights_and_gradient():
