@@ -62,6 +62,7 @@ from torch import nn
 from tqdm import tqdm
 
 from kdtrace.cache import atomic_write_bytes, cache_root, content_key
+from reconstruction._blend_kernels import clipped_blend_error
 
 #: Bump when the fit changes: cached weights become stale.
 BLEND_VERSION = 1
@@ -180,10 +181,11 @@ def cross_validated_weight(noisy: np.ndarray, denoised: np.ndarray, target: np.n
     noisy, denoised, target = (np.asarray(x, np.float64) for x in (noisy, denoised, target))
     if not noisy.shape == denoised.shape == target.shape:
         raise ValueError(f"shapes differ: noisy {noisy.shape}, denoised {denoised.shape}, target {target.shape}")
-    change, goal = denoised - noisy, np.clip(target, 0.0, 1.0)
+    # flat contiguous float64 for the kernel (ravel copies only what is not contiguous)
+    change, goal, noisy = (denoised - noisy).ravel(), np.clip(target, 0.0, 1.0).ravel(), noisy.ravel()
 
     def error(w: float) -> float:
-        return float(np.sum((np.clip(noisy + w * change, 0.0, 1.0) - goal) ** 2))
+        return clipped_blend_error(noisy, change, goal, w)
 
     lo, hi = 0.0, 1.0
     a, b = hi - _GOLDEN * (hi - lo), lo + _GOLDEN * (hi - lo)

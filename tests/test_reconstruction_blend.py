@@ -120,3 +120,17 @@ def test_the_cap_only_lowers_the_validated_weight_and_halves_combine():
     assert rgb.dtype == albedo.dtype == np.float32
     with pytest.raises(ValueError, match="adjacent"):
         blend.combine_halves(halves[1], halves[0])
+
+
+def test_clipped_blend_error_kernel_matches_the_numpy_expression():
+    """The numba kernel against the expression it replaces, NaN included."""
+    from reconstruction._blend_kernels import clipped_blend_error
+
+    rng = np.random.default_rng(11)
+    noisy, change = rng.uniform(-0.5, 1.5, 10_000), rng.normal(0.0, 0.5, 10_000)
+    goal = np.clip(rng.uniform(-0.2, 1.2, 10_000), 0.0, 1.0)
+    for weight in (0.0, 0.3, 0.618, 1.0, 1.7):
+        expected = np.sum((np.clip(noisy + weight * change, 0.0, 1.0) - goal) ** 2)
+        assert clipped_blend_error(noisy, change, goal, weight) == pytest.approx(expected, rel=1e-12)
+    noisy[17] = np.nan
+    assert np.isnan(clipped_blend_error(noisy, change, goal, 0.5))
