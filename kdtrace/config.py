@@ -287,6 +287,10 @@ class ReconstructionProfile:
         Smallest target LoG range the denoiser loss's edge maps are normalised by
         (:class:`reconstruction.loss.EdgeAwareLoss`; default
         :data:`reconstruction.loss.DENOISER_RANGE_FLOOR`, which says how it was chosen).
+    normal_depth_warmup_steps : int
+        Linear learning-rate warm-up, in Adam steps, of the normal + depth denoiser variant only
+        (:func:`reconstruction.train.fit`; 0: none). Without it that variant's first full-rate
+        steps switched off its first encoder layer and it learned the identity (README).
     seed : int
         Seed of camera positions, render seeds, crops, splits, initialisation and shuffling.
     """
@@ -317,6 +321,7 @@ class ReconstructionProfile:
     patience: int = 0
     mixed_epochs: int = 0
     denoiser_edge_range_floor: float = 0.1
+    normal_depth_warmup_steps: int = 0
     seed: int = 20261122
 
     @property
@@ -342,6 +347,8 @@ class ReconstructionProfile:
             raise ValueError("reconstruction.mixed_epochs must be >= 0 (0: the same as epochs)")
         if self.patience < 0:
             raise ValueError("reconstruction.patience must be >= 0 (0: no early stopping)")
+        if self.normal_depth_warmup_steps < 0:
+            raise ValueError("reconstruction.normal_depth_warmup_steps must be >= 0 (0: no warm-up)")
         if not self.denoiser_edge_range_floor > 0:
             raise ValueError("reconstruction.denoiser_edge_range_floor must be > 0")
         if self.superres_crop_size % 2:

@@ -28,6 +28,7 @@ import csv
 import dataclasses
 import io
 import json
+import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -291,7 +292,7 @@ def _forward(model: nn.Module, inputs: torch.Tensor, precision: str) -> torch.Te
 def fit(model: nn.Module, loss_fn: nn.Module, data: dict[str, tuple[torch.Tensor, torch.Tensor]], directory: Path,
         data_hash: str, epochs: int, batch_size: int, learning_rate: float, seed: int,
         to_linear: Transform = _identity, psnr: Callable | None = None, progress: bool | None = None,
-        precision: str = "fp32", patience: int = 0) -> TrainResult:
+        precision: str = "fp32", patience: int = 0, warmup_steps: int = 0) -> TrainResult:
     """Train ``model`` with Adam, resuming from ``directory/checkpoint.pt`` when it matches.
 
     Parameters
@@ -321,12 +322,18 @@ def fit(model: nn.Module, loss_fn: nn.Module, data: dict[str, tuple[torch.Tensor
         Adam state and computes the loss in fp32. Validation is always fp32.
     patience : int
         Stop after this many epochs without a lower validation loss (0: never early).
+    warmup_steps : int
+        The learning rate rises linearly over the first ``warmup_steps`` Adam steps,
+        ``learning_rate * min(1, (step + 1) / warmup_steps)`` (0: none). The step is counted from
+        the epoch and batch, so a resumed training continues the same schedule.
 
     Returns
     -------
     TrainResult
     """
     psnr = _default_psnr() if psnr is None else psnr
+    if warmup_steps < 0:
+        raise ValueError(f"warmup_steps must be >= 0, got {warmup_steps}")
     if precision not in ("fp32", "bf16"):
         raise ValueError(f"precision must be 'fp32' or 'bf16' (resolve 'auto' first), got {precision!r}")
     for split in ("train", "validation"):
@@ -360,7 +367,11 @@ def fit(model: nn.Module, loss_fn: nn.Module, data: dict[str, tuple[torch.Tensor
         started = time.perf_counter()
         model.train()
         loss_sum, psnrs = 0.0, []
-        for index in _batches(len(inputs), batch_size, rng.permutation(len(inputs))):
+        first_step = (epoch - 1) * math.ceil(len(inputs) / batch_size)
+        for step, index in enumerate(_batches(len(inputs), batch_size, rng.permutation(len(inputs))), first_step):
+            if warmup_steps:
+                for group in optimizer.param_groups:
+                    group["lr"] = learning_rate * min(1.0, (step + 1) / warmup_steps)
             prediction = _forward(model, inputs[index], precision)
             loss = loss_fn(prediction, targets[index])
             optimizer.zero_grad()
@@ -398,13 +409,14 @@ def _resolve(profile: str | ReconstructionProfile) -> ReconstructionProfile:
 
 
 def _training_dir(kind: str, model: nn.Module, loss_fn: nn.Module, data_hash: str,
-                  profile: ReconstructionProfile) -> Path:
+                  profile: ReconstructionProfile, warmup_steps: int = 0) -> Path:
     # the loss is part of the identity: the same net and data trained on another loss is another model
     loss = getattr(loss_fn, "config", None) or type(loss_fn).__name__
     # fp32 runs keep their pre-precision keys (their caches stay valid); bf16 is another model
     precision = resolve_precision(profile.precision)[0]
     key = content_key(kind, architecture(model), parameter_count(model), loss, data_hash, profile.batch_size,
-                      profile.learning_rate, profile.seed, *(["bf16"] if precision == "bf16" else []))
+                      profile.learning_rate, profile.seed, *(["bf16"] if precision == "bf16" else []),
+                      *(["warmup", warmup_steps] if warmup_steps else []))
     return cache_root() / "models" / f"{kind}-{key[:24]}"
 
 
@@ -469,7 +481,7 @@ def train_denoiser(scene_names: list[str] | tuple[str, ...], profile: str | Reco
                    model: nn.Module | None = None, loss_fn: nn.Module | None = None,
                    auxiliary: tuple[str, ...] = ("albedo",), directory: Path | None = None,
                    psnr: Callable | None = None, progress: bool | None = None,
-                   demodulate: bool = False) -> TrainResult:
+                   demodulate: bool = False, warmup_steps: int = 0) -> TrainResult:
     """Train the denoiser on the Precision Graphics datasets of ``scene_names``.
 
     One scene gives the scene's specialised (Precision Graphics) model, several the
@@ -496,6 +508,8 @@ def train_denoiser(scene_names: list[str] | tuple[str, ...], profile: str | Reco
     demodulate : bool
         The default model denoises the albedo-demodulated colour (the documented variant of
         :class:`reconstruction.models.Denoiser`); ignored when ``model`` is given.
+    warmup_steps : int
+        Learning-rate warm-up of :func:`fit` (part of the model's cache key when not 0).
 
     Returns
     -------
@@ -515,10 +529,13 @@ def train_denoiser(scene_names: list[str] | tuple[str, ...], profile: str | Reco
         from reconstruction.loss import DENOISER_SIGMA, EdgeAwareLoss
 
         loss_fn = EdgeAwareLoss(DENOISER_SIGMA, profile.denoiser_edge_range_floor)
-    directory = _training_dir("denoiser", model, loss_fn, data_hash, profile) if directory is None else Path(directory)
+    if directory is None:
+        directory = _training_dir("denoiser", model, loss_fn, data_hash, profile, warmup_steps)
+    directory = Path(directory)
     precision = resolve_precision(profile.precision)[0]
     result = fit(model, loss_fn, data, directory, data_hash, profile.epochs, profile.batch_size,
-                 profile.learning_rate, profile.seed, decode, psnr, progress, precision, profile.patience)
+                 profile.learning_rate, profile.seed, decode, psnr, progress, precision, profile.patience,
+                 warmup_steps)
     _write_result(result, evaluate(result.model, data["test"], loss_fn, decode, psnr), list(scene_names), profile)
     return result
 

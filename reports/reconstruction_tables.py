@@ -77,6 +77,8 @@ class DenoiserVariant:
         Its auxiliary input buffers.
     demodulate : bool
         Albedo demodulation (:class:`reconstruction.models.Denoiser`).
+    warmup_field : str
+        The reconstruction profile's field giving its learning-rate warm-up steps ("": none).
     """
 
     key: str
@@ -85,6 +87,7 @@ class DenoiserVariant:
     scenes_field: str
     auxiliary: tuple[str, ...]
     demodulate: bool = False
+    warmup_field: str = ""
 
 
 #: The documented variants: the paper's network fed albedo, normal and depth (10 input channels
@@ -92,7 +95,7 @@ class DenoiserVariant:
 #: colour (the same 95,107 parameters).
 DENOISER_VARIANTS = (
     DenoiserVariant("normal_depth", "normal+depth", "per-scene +normal+depth", "variant_scenes",
-                    ("albedo", "normal", "depth")),
+                    ("albedo", "normal", "depth"), warmup_field="normal_depth_warmup_steps"),
     DenoiserVariant("demodulated", "demodulated", "per-scene demodulated", "demodulated_scenes", ("albedo",), True),
 )
 
@@ -253,8 +256,9 @@ def _measure(config: Config, profile_name: str, fresh: bool, progress: bool,
             step(f"{variant.label} denoiser {name}")
             variant_models[variant][name] = _run_stage(
                 stages, f"{variant.label} denoiser {name}", started,
-                lambda name=name, variant=variant: train_denoiser([name], recon, auxiliary=variant.auxiliary,
-                                                                  demodulate=variant.demodulate, progress=False),
+                lambda name=name, variant=variant: train_denoiser(
+                    [name], recon, auxiliary=variant.auxiliary, demodulate=variant.demodulate, progress=False,
+                    warmup_steps=getattr(recon, variant.warmup_field) if variant.warmup_field else 0),
                 _model_made)
             bar.update()
     step("mixed denoiser")
