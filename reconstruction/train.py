@@ -536,7 +536,8 @@ def train_denoiser(scene_names: list[str] | tuple[str, ...], profile: str | Reco
     result = fit(model, loss_fn, data, directory, data_hash, profile.epochs, profile.batch_size,
                  profile.learning_rate, profile.seed, decode, psnr, progress, precision, profile.patience,
                  warmup_steps)
-    _write_result(result, evaluate(result.model, data["test"], loss_fn, decode, psnr), list(scene_names), profile)
+    _write_result(result, evaluate(result.model, data["test"], loss_fn, decode, psnr), list(scene_names), profile,
+                  warmup_steps)
     return result
 
 
@@ -606,11 +607,13 @@ def train_superres(profile: str | ReconstructionProfile = "quick", scene_names: 
     return result
 
 
-def _write_result(result: TrainResult, test: dict[str, Any], scenes: list[str], profile: ReconstructionProfile) -> None:
+def _write_result(result: TrainResult, test: dict[str, Any], scenes: list[str], profile: ReconstructionProfile,
+                  warmup_steps: int = 0) -> None:
     """``result.json``: test metrics of the kept weights, best epoch, data hash, settings, provenance."""
     precision, note = resolve_precision(profile.precision)
     record = {"scenes": scenes, "test": test, "best_epoch": result.best_epoch, "epochs_run": len(result.history),
-              "precision": precision, "precision_note": note, "data_hash": result.data_hash,
+              "precision": precision, "precision_note": note, "warmup_steps": warmup_steps,
+              "data_hash": result.data_hash,
               **architecture(result.model), "parameters": parameter_count(result.model),
               "provenance": stamp(dataclasses.asdict(profile))}
     atomic_write_bytes(result.directory / "result.json", json.dumps(record, indent=1).encode())

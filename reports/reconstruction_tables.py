@@ -565,7 +565,9 @@ _TITLES = {
                "test set). Paper figures beside ours where the paper has the scene. `per-scene +normal+depth` "
                "(profile `variant_scenes`): the documented variant fed albedo, normal and depth ({variant_parameters} "
                "parameters against the paper network's {parameters}), trained and measured like the per-scene model "
-               "on the same views. `per-scene demodulated` (profile `demodulated_scenes`): the paper's network "
+               "on the same views, with a linear learning-rate warm-up over its first Adam steps (the reconstruction "
+               "profile's `normal_depth_warmup_steps`, in the provenance). `per-scene demodulated` (profile "
+               "`demodulated_scenes`): the paper's network "
                "({demodulated_parameters} parameters) denoising the noisy colour divided by the albedo and "
                "multiplying its output back (`reconstruction.models.Denoiser(demodulate=True)`), trained and measured "
                "the same way."),

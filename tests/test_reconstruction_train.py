@@ -111,6 +111,7 @@ def test_training_reduces_the_loss_and_writes_history_plot_and_checkpoints(train
         torch.testing.assert_close(kept["model"][name], value)
     result = json.loads((trained.directory / "result.json").read_text())
     assert result["scenes"] == [SCENE] and set(result["test"]) >= {"psnr", "rmse", "loss"}
+    assert result["warmup_steps"] == 0
     assert not [path for path in trained.directory.iterdir() if path.name.startswith(".")]
 
 
