@@ -215,47 +215,32 @@ def test_precision_names_are_checked():
         dataclasses.replace(PROFILE, precision="half")
 
 
-class LearningRates(nn.MSELoss):
-    """MSE that records the optimizer's learning rate at each training call."""
-
-    def __init__(self, optimizer_of) -> None:
-        super().__init__()
-        self.optimizer_of, self.rates = optimizer_of, []
-
-    def forward(self, prediction, target):
-        if torch.is_grad_enabled():
-            self.rates.append(self.optimizer_of())
-        return super().forward(prediction, target)
-
-
-def test_warmup_raises_the_learning_rate_linearly_and_resumes_on_schedule(cache, monkeypatch):
+def test_warmup_raises_the_learning_rate_linearly_and_resumes_on_schedule(cache):
     """fit's warm-up: lr * min(1, (step + 1) / W) at every Adam step, continued across a resume."""
-    optimizers = []
-    original = torch.optim.Adam
+    from torch.optim.optimizer import register_optimizer_step_pre_hook
 
-    def recording_adam(*args, **kwargs):
-        optimizers.append(original(*args, **kwargs))
-        return optimizers[-1]
-
-    monkeypatch.setattr(torch.optim, "Adam", recording_adam)
-    steps = math.ceil(len(train.denoiser_data([SCENE], PROFILE)[0]["train"][0]) / PROFILE.batch_size)
+    data, data_hash = train.denoiser_data([SCENE], PROFILE)
+    steps = math.ceil(len(data["train"][0]) / PROFILE.batch_size)
     warmup = steps + 2  # the warm-up ends inside the second epoch
     expected = [PROFILE.learning_rate * min(1.0, (k + 1) / warmup) for k in range(3 * steps)]
 
     def run(directory, epochs):
-        loss = LearningRates(lambda: optimizers[-1].param_groups[0]["lr"])
-        torch.manual_seed(PROFILE.seed)
-        train.fit(TinyDenoiser(), loss, train.denoiser_data([SCENE], PROFILE)[0], directory,
-                  train.denoiser_data([SCENE], PROFILE)[1], epochs, PROFILE.batch_size, PROFILE.learning_rate,
-                  PROFILE.seed, psnr=_psnr, progress=False, warmup_steps=warmup)
-        return loss.rates
+        rates = []
+        hook = register_optimizer_step_pre_hook(lambda optimizer, *_: rates.append(optimizer.param_groups[0]["lr"]))
+        try:
+            torch.manual_seed(PROFILE.seed)
+            train.fit(TinyDenoiser(), nn.MSELoss(), data, directory, data_hash, epochs, PROFILE.batch_size,
+                      PROFILE.learning_rate, PROFILE.seed, psnr=_psnr, progress=False, warmup_steps=warmup)
+        finally:
+            hook.remove()
+        return rates
 
     assert run(cache / "warmup-whole", 3) == pytest.approx(expected, rel=1e-12)
     # two epochs, then resumed for the third: the third epoch's rates continue the schedule
     assert run(cache / "warmup-resumed", 2) == pytest.approx(expected[:2 * steps], rel=1e-12)
     assert run(cache / "warmup-resumed", 3) == pytest.approx(expected[2 * steps:], rel=1e-12)
     with pytest.raises(ValueError, match="warmup_steps"):
-        train.fit(TinyDenoiser(), nn.MSELoss(), train.denoiser_data([SCENE], PROFILE)[0], cache / "bad", "x", 1,
+        train.fit(TinyDenoiser(), nn.MSELoss(), data, cache / "bad", data_hash, 1,
                   PROFILE.batch_size, PROFILE.learning_rate, PROFILE.seed, warmup_steps=-1)
 
 
