@@ -18,6 +18,8 @@ DEFAULTS_PATH = Path(__file__).with_name("defaults.toml")
 
 #: Ray-triangle tests the traversal offers (:attr:`KDTreeConfig.triangle_test`).
 TRIANGLE_TESTS = ("watertight", "moller-trumbore")
+#: Learning-rate schedules of the denoisers after their warm-up (ReconstructionProfile.denoiser_decay).
+DECAYS = ("constant", "cosine")
 
 
 @dataclass(frozen=True)
@@ -291,6 +293,16 @@ class ReconstructionProfile:
         Linear learning-rate warm-up, in Adam steps, of the normal + depth denoiser variant only
         (:func:`reconstruction.train.fit`; 0: none). Without it that variant's first full-rate
         steps switched off its first encoder layer and it learned the identity (README).
+    denoiser_learning_rate : float or None
+        Peak Adam step size of every denoiser (None: ``learning_rate``, which superresolution
+        keeps).
+    denoiser_decay : str
+        The denoisers' learning rate after the warm-up: ``"constant"``, or ``"cosine"`` (half a
+        cosine from the peak down to 0 over all the training's Adam steps; the schedule then
+        depends on ``epochs``, so it is part of the model's cache key).
+    denoiser_warmup_steps : int
+        Linear learning-rate warm-up, in Adam steps, of every denoiser (0: none); a variant with
+        a longer warm-up of its own (``normal_depth_warmup_steps``) keeps the longer one.
     seed : int
         Seed of camera positions, render seeds, crops, splits, initialisation and shuffling.
     """
@@ -322,7 +334,15 @@ class ReconstructionProfile:
     mixed_epochs: int = 0
     denoiser_edge_range_floor: float = 0.1
     normal_depth_warmup_steps: int = 0
+    denoiser_learning_rate: float | None = None
+    denoiser_decay: str = "constant"
+    denoiser_warmup_steps: int = 0
     seed: int = 20261122
+
+    @property
+    def denoiser_rate(self) -> float:
+        """Peak learning rate of the denoisers: ``denoiser_learning_rate``, else ``learning_rate``."""
+        return self.learning_rate if self.denoiser_learning_rate is None else self.denoiser_learning_rate
 
     @property
     def mixed(self) -> ReconstructionProfile:
@@ -347,8 +367,13 @@ class ReconstructionProfile:
             raise ValueError("reconstruction.mixed_epochs must be >= 0 (0: the same as epochs)")
         if self.patience < 0:
             raise ValueError("reconstruction.patience must be >= 0 (0: no early stopping)")
-        if self.normal_depth_warmup_steps < 0:
-            raise ValueError("reconstruction.normal_depth_warmup_steps must be >= 0 (0: no warm-up)")
+        if self.normal_depth_warmup_steps < 0 or self.denoiser_warmup_steps < 0:
+            raise ValueError("reconstruction.normal_depth_warmup_steps and denoiser_warmup_steps must be >= 0 "
+                             "(0: no warm-up)")
+        if self.denoiser_decay not in DECAYS:
+            raise ValueError(f"reconstruction.denoiser_decay must be one of {DECAYS}, got {self.denoiser_decay!r}")
+        if self.denoiser_learning_rate is not None and not self.denoiser_learning_rate > 0.0:
+            raise ValueError("reconstruction.denoiser_learning_rate must be > 0 (or absent: learning_rate)")
         if not self.denoiser_edge_range_floor > 0:
             raise ValueError("reconstruction.denoiser_edge_range_floor must be > 0")
         if self.superres_crop_size % 2:

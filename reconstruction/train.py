@@ -41,7 +41,7 @@ from torch import nn
 from tqdm import tqdm
 
 from kdtrace.cache import atomic_write, atomic_write_bytes, cache_root, content_key
-from kdtrace.config import DEFAULT_CONFIG, ReconstructionProfile
+from kdtrace.config import DECAYS, DEFAULT_CONFIG, ReconstructionProfile
 from kdtrace.provenance import stamp
 
 #: Identifies our checkpoint files; bump the version when their layout changes.
@@ -289,10 +289,18 @@ def _forward(model: nn.Module, inputs: torch.Tensor, precision: str) -> torch.Te
     return prediction.float().contiguous()
 
 
+def learning_rate_factor(step: int, warmup_steps: int, decay: str, total_steps: int) -> float:
+    """Multiplier of the peak learning rate at Adam step ``step`` (0-based); see :func:`fit`."""
+    factor = min(1.0, (step + 1) / warmup_steps) if warmup_steps else 1.0
+    if decay == "cosine":
+        factor *= 0.5 * (1.0 + math.cos(math.pi * min(step, total_steps) / total_steps))
+    return factor
+
+
 def fit(model: nn.Module, loss_fn: nn.Module, data: dict[str, tuple[torch.Tensor, torch.Tensor]], directory: Path,
         data_hash: str, epochs: int, batch_size: int, learning_rate: float, seed: int,
         to_linear: Transform = _identity, psnr: Callable | None = None, progress: bool | None = None,
-        precision: str = "fp32", patience: int = 0, warmup_steps: int = 0) -> TrainResult:
+        precision: str = "fp32", patience: int = 0, warmup_steps: int = 0, decay: str = "constant") -> TrainResult:
     """Train ``model`` with Adam, resuming from ``directory/checkpoint.pt`` when it matches.
 
     Parameters
@@ -326,6 +334,9 @@ def fit(model: nn.Module, loss_fn: nn.Module, data: dict[str, tuple[torch.Tensor
         The learning rate rises linearly over the first ``warmup_steps`` Adam steps,
         ``learning_rate * min(1, (step + 1) / warmup_steps)`` (0: none). The step is counted from
         the epoch and batch, so a resumed training continues the same schedule.
+    decay : {"constant", "cosine"}
+        ``"cosine"`` multiplies that rate by ``(1 + cos(pi * step / total)) / 2``, ``total``
+        being all the Adam steps of ``epochs`` epochs: from the full rate down to 0 at the end.
 
     Returns
     -------
@@ -336,6 +347,8 @@ def fit(model: nn.Module, loss_fn: nn.Module, data: dict[str, tuple[torch.Tensor
         raise ValueError(f"warmup_steps must be >= 0, got {warmup_steps}")
     if precision not in ("fp32", "bf16"):
         raise ValueError(f"precision must be 'fp32' or 'bf16' (resolve 'auto' first), got {precision!r}")
+    if decay not in DECAYS:
+        raise ValueError(f"decay must be one of {DECAYS}, got {decay!r}")
     for split in ("train", "validation"):
         if split not in data or len(data[split][0]) == 0:
             raise ValueError(f"the {split} split is empty")
@@ -357,6 +370,7 @@ def fit(model: nn.Module, loss_fn: nn.Module, data: dict[str, tuple[torch.Tensor
         history = json.loads(state["history"])
         best = {"loss": state["best_loss"], "epoch": state["best_epoch"], "state": state["best"]}
     inputs, targets = data["train"]
+    steps_per_epoch = math.ceil(len(inputs) / batch_size)
     bar = tqdm(total=epochs, initial=len(history), unit="epoch", desc=f"train {architecture(model)['architecture']}",
                disable=None if progress is None else not progress, leave=False)
     if precision == "bf16":
@@ -367,11 +381,12 @@ def fit(model: nn.Module, loss_fn: nn.Module, data: dict[str, tuple[torch.Tensor
         started = time.perf_counter()
         model.train()
         loss_sum, psnrs = 0.0, []
-        first_step = (epoch - 1) * math.ceil(len(inputs) / batch_size)
+        first_step = (epoch - 1) * steps_per_epoch
         for step, index in enumerate(_batches(len(inputs), batch_size, rng.permutation(len(inputs))), first_step):
-            if warmup_steps:
+            if warmup_steps or decay != "constant":
                 for group in optimizer.param_groups:
-                    group["lr"] = learning_rate * min(1.0, (step + 1) / warmup_steps)
+                    group["lr"] = learning_rate * learning_rate_factor(step, warmup_steps, decay,
+                                                                       epochs * steps_per_epoch)
             prediction = _forward(model, inputs[index], precision)
             loss = loss_fn(prediction, targets[index])
             optimizer.zero_grad()
@@ -409,14 +424,19 @@ def _resolve(profile: str | ReconstructionProfile) -> ReconstructionProfile:
 
 
 def _training_dir(kind: str, model: nn.Module, loss_fn: nn.Module, data_hash: str,
-                  profile: ReconstructionProfile, warmup_steps: int = 0) -> Path:
+                  profile: ReconstructionProfile, warmup_steps: int = 0, learning_rate: float | None = None,
+                  decay: str = "constant") -> Path:
     # the loss is part of the identity: the same net and data trained on another loss is another model
     loss = getattr(loss_fn, "config", None) or type(loss_fn).__name__
     # fp32 runs keep their pre-precision keys (their caches stay valid); bf16 is another model
     precision = resolve_precision(profile.precision)[0]
+    # warm-up and decay enter only when used (earlier models keep their keys); a decay's schedule
+    # depends on the epoch count, so with one raising `epochs` is another model, not a resume
     key = content_key(kind, architecture(model), parameter_count(model), loss, data_hash, profile.batch_size,
-                      profile.learning_rate, profile.seed, *(["bf16"] if precision == "bf16" else []),
-                      *(["warmup", warmup_steps] if warmup_steps else []))
+                      profile.learning_rate if learning_rate is None else learning_rate, profile.seed,
+                      *(["bf16"] if precision == "bf16" else []),
+                      *(["warmup", warmup_steps] if warmup_steps else []),
+                      *(["decay", decay, profile.epochs] if decay != "constant" else []))
     return cache_root() / "models" / f"{kind}-{key[:24]}"
 
 
@@ -509,7 +529,9 @@ def train_denoiser(scene_names: list[str] | tuple[str, ...], profile: str | Reco
         The default model denoises the albedo-demodulated colour (the documented variant of
         :class:`reconstruction.models.Denoiser`); ignored when ``model`` is given.
     warmup_steps : int
-        Learning-rate warm-up of :func:`fit` (part of the model's cache key when not 0).
+        Learning-rate warm-up of :func:`fit` for this model (a variant's own); the longer of it
+        and the profile's ``denoiser_warmup_steps`` is used (part of the cache key when not 0).
+        The peak rate and its decay are the profile's ``denoiser_rate`` and ``denoiser_decay``.
 
     Returns
     -------
@@ -529,15 +551,17 @@ def train_denoiser(scene_names: list[str] | tuple[str, ...], profile: str | Reco
         from reconstruction.loss import DENOISER_SIGMA, EdgeAwareLoss
 
         loss_fn = EdgeAwareLoss(DENOISER_SIGMA, profile.denoiser_edge_range_floor)
+    warmup_steps = max(warmup_steps, profile.denoiser_warmup_steps)
+    schedule = {"warmup_steps": warmup_steps, "learning_rate": profile.denoiser_rate, "decay": profile.denoiser_decay}
     if directory is None:
-        directory = _training_dir("denoiser", model, loss_fn, data_hash, profile, warmup_steps)
+        directory = _training_dir("denoiser", model, loss_fn, data_hash, profile, **schedule)
     directory = Path(directory)
     precision = resolve_precision(profile.precision)[0]
     result = fit(model, loss_fn, data, directory, data_hash, profile.epochs, profile.batch_size,
-                 profile.learning_rate, profile.seed, decode, psnr, progress, precision, profile.patience,
-                 warmup_steps)
+                 profile.denoiser_rate, profile.seed, decode, psnr, progress, precision, profile.patience,
+                 warmup_steps, profile.denoiser_decay)
     _write_result(result, evaluate(result.model, data["test"], loss_fn, decode, psnr), list(scene_names), profile,
-                  warmup_steps)
+                  **schedule)
     return result
 
 
@@ -608,11 +632,12 @@ def train_superres(profile: str | ReconstructionProfile = "quick", scene_names: 
 
 
 def _write_result(result: TrainResult, test: dict[str, Any], scenes: list[str], profile: ReconstructionProfile,
-                  warmup_steps: int = 0) -> None:
+                  warmup_steps: int = 0, learning_rate: float | None = None, decay: str = "constant") -> None:
     """``result.json``: test metrics of the kept weights, best epoch, data hash, settings, provenance."""
     precision, note = resolve_precision(profile.precision)
     record = {"scenes": scenes, "test": test, "best_epoch": result.best_epoch, "epochs_run": len(result.history),
               "precision": precision, "precision_note": note, "warmup_steps": warmup_steps,
+              "learning_rate": profile.learning_rate if learning_rate is None else learning_rate, "decay": decay,
               "data_hash": result.data_hash,
               **architecture(result.model), "parameters": parameter_count(result.model),
               "provenance": stamp(dataclasses.asdict(profile))}

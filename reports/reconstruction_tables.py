@@ -250,6 +250,12 @@ def _measure(config: Config, profile_name: str, fresh: bool, progress: bool,
         models[name] = _run_stage(stages, f"denoiser {name}", started,
                                   lambda name=name: train_denoiser([name], recon, progress=False), _model_made)
         bar.update()
+    # the paper's models (per-scene, then mixed) before the documented variants: an interrupted
+    # run has the measured objects first
+    step("mixed denoiser")
+    mixed = _run_stage(stages, "mixed denoiser", started, lambda: train_denoiser(scenes, recon.mixed, progress=False),
+                       _model_made)
+    bar.update()
     variant_models: dict[DenoiserVariant, dict[str, Any]] = {variant: {} for variant in DENOISER_VARIANTS}
     for variant, names in variants.items():
         for name in names:
@@ -261,10 +267,6 @@ def _measure(config: Config, profile_name: str, fresh: bool, progress: bool,
                     warmup_steps=getattr(recon, variant.warmup_field) if variant.warmup_field else 0),
                 _model_made)
             bar.update()
-    step("mixed denoiser")
-    mixed = _run_stage(stages, "mixed denoiser", started, lambda: train_denoiser(scenes, recon.mixed, progress=False),
-                       _model_made)
-    bar.update()
     step("superresolution")
     superres = _run_stage(stages, "superresolution", started,
                           lambda: train_superres(recon, scenes, progress=False), _model_made)
@@ -595,6 +597,14 @@ _TITLES = {
 }
 
 
+def _schedule(reconstruction: Any) -> str:
+    """The denoisers' learning-rate schedule in words."""
+    warmup = (f", a {reconstruction.denoiser_warmup_steps}-step linear warm-up"
+              if reconstruction.denoiser_warmup_steps else "")
+    return (f"denoisers trained with Adam at {reconstruction.denoiser_rate:g}, {reconstruction.denoiser_decay} "
+            f"learning rate{warmup}")
+
+
 def _header(stem: str, m: dict, provenance: dict, reconstruction: Any) -> str:
     title, note = _TITLES[stem]
     note = note.format(downsample=reconstruction.superres_downsample, spp=m["frame_spp"],
@@ -613,7 +623,7 @@ def _header(stem: str, m: dict, provenance: dict, reconstruction: Any) -> str:
     return (f"# {title} ({m['profile']} profile)\n\n{note}\n\n"
             f"Reconstruction profile `{m['reconstruction_profile']}` ({reconstruction.width}x{reconstruction.height} "
             f"views, {reconstruction.spp} spp input, {reconstruction.reference} references at "
-            f"{reconstruction.reference_spp} spp, {m['epochs']} epochs; kept epochs: "
+            f"{reconstruction.reference_spp} spp, {m['epochs']} epochs; {_schedule(reconstruction)}; kept epochs: "
             + ", ".join(f"{k} {v}" for k, v in m["best_epochs"].items()) + "). "
             f"Training arithmetic on this machine: {why or precision}. "
             f"Machine: {machine['cpu']}, {machine['cores']} cores; {machine['date']}. {cache}\n\n")

@@ -215,40 +215,68 @@ def test_precision_names_are_checked():
         dataclasses.replace(PROFILE, precision="half")
 
 
-def test_warmup_raises_the_learning_rate_linearly_and_resumes_on_schedule(cache):
-    """fit's warm-up: lr * min(1, (step + 1) / W) at every Adam step, continued across a resume."""
+@pytest.mark.parametrize("decay", ["constant", "cosine"])
+def test_warmup_and_decay_set_the_learning_rate_of_every_step_and_resume_on_schedule(cache, decay):
+    """fit's schedule at every Adam step k of T: lr * min(1, (k + 1) / W), times (1 + cos(pi k / T)) / 2
+    with the cosine decay; continued across a resume."""
     from torch.optim.optimizer import register_optimizer_step_pre_hook
 
     data, data_hash = train.denoiser_data([SCENE], PROFILE)
     steps = math.ceil(len(data["train"][0]) / PROFILE.batch_size)
     warmup = steps + 2  # the warm-up ends inside the second epoch
-    expected = [PROFILE.learning_rate * min(1.0, (k + 1) / warmup) for k in range(3 * steps)]
+    total = 3 * steps
+    expected = [PROFILE.learning_rate * min(1.0, (k + 1) / warmup)
+                * (0.5 * (1.0 + math.cos(math.pi * k / total)) if decay == "cosine" else 1.0) for k in range(total)]
 
-    def run(directory, epochs):
+    class Interrupted(Exception):
+        pass
+
+    def run(directory, interrupt_at=None):
         rates = []
-        hook = register_optimizer_step_pre_hook(lambda optimizer, *_: rates.append(optimizer.param_groups[0]["lr"]))
+
+        def record(optimizer, *_):
+            if len(rates) == interrupt_at:
+                raise Interrupted  # before this Adam step: the last checkpoint is the epoch before
+            rates.append(optimizer.param_groups[0]["lr"])
+
+        hook = register_optimizer_step_pre_hook(record)
         try:
             torch.manual_seed(PROFILE.seed)
-            train.fit(TinyDenoiser(), nn.MSELoss(), data, directory, data_hash, epochs, PROFILE.batch_size,
-                      PROFILE.learning_rate, PROFILE.seed, psnr=_psnr, progress=False, warmup_steps=warmup)
+            train.fit(TinyDenoiser(), nn.MSELoss(), data, directory, data_hash, 3, PROFILE.batch_size,
+                      PROFILE.learning_rate, PROFILE.seed, psnr=_psnr, progress=False, warmup_steps=warmup,
+                      decay=decay)
+        except Interrupted:
+            pass
         finally:
             hook.remove()
         return rates
 
-    assert run(cache / "warmup-whole", 3) == pytest.approx(expected, rel=1e-12)
-    # two epochs, then resumed for the third: the third epoch's rates continue the schedule
-    assert run(cache / "warmup-resumed", 2) == pytest.approx(expected[:2 * steps], rel=1e-12)
-    assert run(cache / "warmup-resumed", 3) == pytest.approx(expected[2 * steps:], rel=1e-12)
+    assert run(cache / f"{decay}-whole") == pytest.approx(expected, rel=1e-12)
+    # interrupted in the third epoch, then resumed: the third epoch is redone on the same schedule
+    assert run(cache / f"{decay}-resumed", interrupt_at=2 * steps + 1) == pytest.approx(expected[:2 * steps + 1],
+                                                                                       rel=1e-12)
+    assert run(cache / f"{decay}-resumed") == pytest.approx(expected[2 * steps:], rel=1e-12)
     with pytest.raises(ValueError, match="warmup_steps"):
         train.fit(TinyDenoiser(), nn.MSELoss(), data, cache / "bad", data_hash, 1,
                   PROFILE.batch_size, PROFILE.learning_rate, PROFILE.seed, warmup_steps=-1)
+    with pytest.raises(ValueError, match="decay"):
+        train.fit(TinyDenoiser(), nn.MSELoss(), data, cache / "bad", data_hash, 1,
+                  PROFILE.batch_size, PROFILE.learning_rate, PROFILE.seed, decay="linear")
 
 
-def test_warmup_is_part_of_the_model_key_only_when_used():
+def test_warmup_and_decay_are_part_of_the_model_key_only_when_used():
     model, loss = TinyDenoiser(), nn.MSELoss()
     plain = train._training_dir("denoiser", model, loss, "hash", PROFILE)
-    assert train._training_dir("denoiser", model, loss, "hash", PROFILE, 0) == plain  # old caches stay valid
+    # old caches stay valid
+    assert train._training_dir("denoiser", model, loss, "hash", PROFILE, 0, PROFILE.learning_rate, "constant") == plain
     assert train._training_dir("denoiser", model, loss, "hash", PROFILE, 100) != plain
+    assert train._training_dir("denoiser", model, loss, "hash", PROFILE, learning_rate=2e-3) != plain
+    cosine = train._training_dir("denoiser", model, loss, "hash", PROFILE, decay="cosine")
+    assert cosine != plain
+    # with a decay the epoch count shapes the schedule: more epochs is another model, not a resume
+    longer = dataclasses.replace(PROFILE, epochs=PROFILE.epochs + 1)
+    assert train._training_dir("denoiser", model, loss, "hash", longer, decay="cosine") != cosine
+    assert train._training_dir("denoiser", model, loss, "hash", longer) == plain
 
 
 def test_profiles_warm_up_only_the_standard_normal_depth_variant():
@@ -257,3 +285,14 @@ def test_profiles_warm_up_only_the_standard_normal_depth_variant():
     assert profiles.profile("quick").normal_depth_warmup_steps == 0
     with pytest.raises(ValueError, match="normal_depth_warmup_steps"):
         dataclasses.replace(profiles.profile("quick"), normal_depth_warmup_steps=-1)
+
+
+def test_denoiser_schedule_settings_default_to_the_constant_shared_rate_and_are_checked():
+    quick = DEFAULT_CONFIG.reconstruction.profile("quick")
+    # the quick profile (the CI gate's) keeps its models: constant rate, the shared learning_rate
+    assert (quick.denoiser_decay, quick.denoiser_warmup_steps, quick.denoiser_rate) == ("constant", 0, quick.learning_rate)
+    assert dataclasses.replace(quick, denoiser_learning_rate=2e-3).denoiser_rate == 2e-3
+    for bad, match in (({"denoiser_decay": "linear"}, "denoiser_decay"), ({"denoiser_warmup_steps": -1}, "warmup"),
+                       ({"denoiser_learning_rate": 0.0}, "denoiser_learning_rate")):
+        with pytest.raises(ValueError, match=match):
+            dataclasses.replace(quick, **bad)
