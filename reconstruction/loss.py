@@ -122,10 +122,14 @@ def normalise_edges(response: torch.Tensor, reference: torch.Tensor | None = Non
         Same shape; in [0, 1] when normalised by itself, ≈ 0 where the range is below
         ``floor``.
     """
-    reference = response if reference is None else reference
+    low, scale = edge_range(response if reference is None else reference, floor)
+    return (response - low) / scale
+
+
+def edge_range(reference: torch.Tensor, floor: float = EDGE_RANGE_FLOOR) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per image and channel minimum of ``reference`` and its range, at least ``floor`` (shape (N, C, 1, 1))."""
     low = reference.amin(dim=(-2, -1), keepdim=True)
-    high = reference.amax(dim=(-2, -1), keepdim=True)
-    return (response - low) / (high - low).clamp_min(floor)
+    return low, (reference.amax(dim=(-2, -1), keepdim=True) - low).clamp_min(floor)
 
 
 class EdgeAwareLoss(nn.Module):
@@ -156,6 +160,6 @@ class EdgeAwareLoss(nn.Module):
             raise ValueError(f"prediction {tuple(prediction.shape)} and target {tuple(target.shape)} differ in shape")
         pixel = F.mse_loss(prediction, target)
         target_edges = self.log(target)
-        edges = F.mse_loss(normalise_edges(self.log(prediction), target_edges, self.range_floor),
-                           normalise_edges(target_edges, floor=self.range_floor))
+        low, scale = edge_range(target_edges, self.range_floor)  # once for both maps
+        edges = F.mse_loss((self.log(prediction) - low) / scale, (target_edges - low) / scale)
         return MSE_WEIGHT * pixel + (1.0 - MSE_WEIGHT) * edges
