@@ -371,6 +371,7 @@ def fit(model: nn.Module, loss_fn: nn.Module, data: dict[str, tuple[torch.Tensor
         best = {"loss": state["best_loss"], "epoch": state["best_epoch"], "state": state["best"]}
     inputs, targets = data["train"]
     steps_per_epoch = math.ceil(len(inputs) / batch_size)
+    total_steps = epochs * steps_per_epoch
     bar = tqdm(total=epochs, initial=len(history), unit="epoch", desc=f"train {architecture(model)['architecture']}",
                disable=None if progress is None else not progress, leave=False)
     if precision == "bf16":
@@ -383,10 +384,8 @@ def fit(model: nn.Module, loss_fn: nn.Module, data: dict[str, tuple[torch.Tensor
         loss_sum, psnrs = 0.0, []
         first_step = (epoch - 1) * steps_per_epoch
         for step, index in enumerate(_batches(len(inputs), batch_size, rng.permutation(len(inputs))), first_step):
-            if warmup_steps or decay != "constant":
-                for group in optimizer.param_groups:
-                    group["lr"] = learning_rate * learning_rate_factor(step, warmup_steps, decay,
-                                                                       epochs * steps_per_epoch)
+            for group in optimizer.param_groups:  # factor 1 without warm-up and decay: the rate as given
+                group["lr"] = learning_rate * learning_rate_factor(step, warmup_steps, decay, total_steps)
             prediction = _forward(model, inputs[index], precision)
             loss = loss_fn(prediction, targets[index])
             optimizer.zero_grad()
