@@ -35,6 +35,7 @@ import numpy as np
 from numba import literally, njit, prange
 
 from kdtrace._kdtree_traverse import RAY_SCRATCH, STACK_SIZE, trace_ray
+from kdtrace._packet_traverse import PACKET_BEST, PACKET_SIZE, PACKET_TRI, PACKET_U, PACKET_V, packet_scratch, trace_packet_outlined
 
 KIND_DIFFUSE = 0
 KIND_MIRROR = 1
@@ -244,9 +245,10 @@ def offset_origin(px, py, pz, nx, ny, nz, dx, dy, dz):
 @njit(cache=True, error_model="numpy", inline="always")
 def path_sample(
     specular, textures, normals, sky, emitters, emitter_selection, aux, watertight,
-    tree, shading, ox, oy, oz, dx, dy, dz, key, max_depth, rr_depth, scratch,
+    tree, shading, ox, oy, oz, dx, dy, dz, first_hit, key, max_depth, rr_depth, scratch,
 ):
-    """One path from the camera ray (o, d), for the feature flags given first.
+    """One path from the camera ray (o, d), whose hit ``first_hit`` = (t, triangle, u, v) is
+    already traced, for the feature flags given first.
 
     ``tree`` is ``(nodes, splits, refs, box, corners)``, ``shading`` the per-triangle,
     material, texture, emitter and sky arrays in :func:`render_tiles`' order (``tri_mat``
@@ -277,10 +279,11 @@ def path_sample(
     n_shadow = 0
     n_bounce = 0
     depth = 0
+    t, tri, u, v = first_hit
     while True:
-        t, tri, u, v, _, _ = trace_ray(nodes, splits, refs, box, corners, ox, oy, oz, dx, dy, dz,
-                                       0.0, np.inf, False, watertight, st_node, st_ent, st_ext, ray)
         if depth > 0:
+            t, tri, u, v, _, _ = trace_ray(nodes, splits, refs, box, corners, ox, oy, oz, dx, dy, dz,
+                                           0.0, np.inf, False, watertight, st_node, st_ent, st_ext, ray)
             n_bounce += 1
         if tri < 0:
             if sky:
@@ -419,8 +422,8 @@ def render_tile(
     nodes, splits, refs, box, corners, watertight, tri_mat, tri_normals, tri_uv,
     mat_kind, mat_albedo, mat_emission, mat_ior, mat_tex, tex_pixels, tex_info,
     emit_tri, emit_cdf, tri_emit_pdf, sky_rgb, cam,
-    width, height, spp, max_depth, rr_depth, seed, first_sample, tile_size, tile, tiles_x,
-    st_node, st_ent, st_ext, ray, out_rgb, out_var, out_albedo, out_normal, out_depth, counts,
+    width, height, spp, max_depth, rr_depth, seed, first_sample, tile_size, tile, tiles_x, camera_packets,
+    st_node, st_ent, st_ext, ray, packet, out_rgb, out_var, out_albedo, out_normal, out_depth, counts,
 ):
     """Render one tile (index ``tile`` of a row of ``tiles_x``) into the ``out_*`` buffers.
 
@@ -428,14 +431,25 @@ def render_tile(
     triangle test (``watertight``); the parallel loop of :func:`render_tiles` calls it once per tile
     (numba cannot inline into a ``prange`` body). A pixel takes the samples
     ``first_sample .. first_sample + spp - 1`` of its sequence.
+
+    The tile's camera rays, pixel after pixel and sample after sample, are traced in
+    packets of :data:`kdtrace._packet_traverse.PACKET_SIZE` (``camera_packets``; the same
+    hits as one by one, see :mod:`kdtrace._packet_traverse`), or one by one with
+    :func:`kdtrace._kdtree_traverse.trace_ray` (the oracle); ``packet`` is the per-thread
+    :func:`kdtrace._packet_traverse.packet_scratch` plus its lane flags, ray origins,
+    directions and keys.
     """
     literally(watertight)
     tree = (nodes, splits, refs, box, corners)
     shading = (tri_mat, tri_normals, tri_uv, mat_kind, mat_albedo, mat_emission, mat_ior, mat_tex, tex_pixels, tex_info,
                emit_tri, emit_cdf, tri_emit_pdf, sky_rgb)
     scratch = (st_node, st_ent, st_ext, ray)
+    lanes3, lanes, lane_ints, st_head, st_span, flags, origins, directions, keys = packet
+    lane_scratch = (lanes3, lanes, lane_ints, st_head, st_span, flags)
     ty0 = (tile // tiles_x) * tile_size
     tx0 = (tile % tiles_x) * tile_size
+    tile_w = min(tx0 + tile_size, width) - tx0
+    tile_h = min(ty0 + tile_size, height) - ty0
     n_shadow = 0
     n_bounce = 0
     # Per-pixel sums, allocated once per tile and zeroed for each pixel: the same images,
@@ -445,41 +459,69 @@ def render_tile(
     sum_l2 = np.empty(3)
     sum_a = np.empty(3)
     sum_n = np.empty(3)
-    for j in range(ty0, min(ty0 + tile_size, height)):
-        for i in range(tx0, min(tx0 + tile_size, width)):
-            pixel = j * width + i
-            for c in range(3):
-                sum_l[c] = 0.0
-                sum_l2[c] = 0.0
-                sum_a[c] = 0.0
-                sum_n[c] = 0.0
-            sum_t = 0.0
-            hits = 0
-            for s in range(spp):
-                key = sample_key(seed, pixel, first_sample + s)
-                dx, dy, dz = camera_direction(cam, width, height, i + uniform(key, 0), j + uniform(key, 1))
-                lr, lg, lb, ar, ag, ab, nx, ny, nz, t, shadow, bounce = path_sample(
-                    specular, textures, normals, sky, emitters, emitter_selection, aux, watertight,
-                    tree, shading, cam[0], cam[1], cam[2], dx, dy, dz, key, max_depth, rr_depth, scratch,
-                )
-                sum_l[0] += lr
-                sum_l[1] += lg
-                sum_l[2] += lb
-                sum_l2[0] += lr * lr
-                sum_l2[1] += lg * lg
-                sum_l2[2] += lb * lb
-                if aux:
-                    sum_a[0] += ar
-                    sum_a[1] += ag
-                    sum_a[2] += ab
-                    sum_n[0] += nx
-                    sum_n[1] += ny
-                    sum_n[2] += nz
-                    if t > 0.0:
-                        sum_t += t
-                        hits += 1
-                n_shadow += shadow
-                n_bounce += bounce
+    sum_t = 0.0
+    hits = 0
+    total = tile_w * tile_h * spp
+    for start in range(0, total, PACKET_SIZE):
+        lanes_used = min(PACKET_SIZE, total - start)
+        for r in range(lanes_used):
+            q = start + r
+            j = ty0 + (q // spp) // tile_w
+            i = tx0 + (q // spp) % tile_w
+            key = sample_key(seed, j * width + i, first_sample + q % spp)
+            keys[r] = key
+            dx, dy, dz = camera_direction(cam, width, height, i + uniform(key, 0), j + uniform(key, 1))
+            origins[r, 0], origins[r, 1], origins[r, 2] = cam[0], cam[1], cam[2]
+            directions[r, 0], directions[r, 1], directions[r, 2] = dx, dy, dz
+        if not (camera_packets and trace_packet_outlined(nodes, splits, refs, box, corners, origins, directions, lanes_used,
+                                                np.inf, watertight, lane_scratch)):
+            for r in range(lanes_used):
+                t, tri, u, v, _, _ = trace_ray(nodes, splits, refs, box, corners, cam[0], cam[1], cam[2],
+                                               directions[r, 0], directions[r, 1], directions[r, 2], 0.0, np.inf,
+                                               False, watertight, st_node, st_ent, st_ext, ray)
+                lanes[PACKET_BEST, r] = t
+                lanes[PACKET_U, r] = u
+                lanes[PACKET_V, r] = v
+                lane_ints[PACKET_TRI, r] = tri
+        for r in range(lanes_used):
+            q = start + r
+            s = q % spp
+            j = ty0 + (q // spp) // tile_w
+            i = tx0 + (q // spp) % tile_w
+            if s == 0:
+                for c in range(3):
+                    sum_l[c] = 0.0
+                    sum_l2[c] = 0.0
+                    sum_a[c] = 0.0
+                    sum_n[c] = 0.0
+                sum_t = 0.0
+                hits = 0
+            first_hit = (lanes[PACKET_BEST, r], lane_ints[PACKET_TRI, r], lanes[PACKET_U, r], lanes[PACKET_V, r])
+            lr, lg, lb, ar, ag, ab, nx, ny, nz, t, shadow, bounce = path_sample(
+                specular, textures, normals, sky, emitters, emitter_selection, aux, watertight,
+                tree, shading, cam[0], cam[1], cam[2], directions[r, 0], directions[r, 1], directions[r, 2],
+                first_hit, keys[r], max_depth, rr_depth, scratch,
+            )
+            sum_l[0] += lr
+            sum_l[1] += lg
+            sum_l[2] += lb
+            sum_l2[0] += lr * lr
+            sum_l2[1] += lg * lg
+            sum_l2[2] += lb * lb
+            if aux:
+                sum_a[0] += ar
+                sum_a[1] += ag
+                sum_a[2] += ab
+                sum_n[0] += nx
+                sum_n[1] += ny
+                sum_n[2] += nz
+                if t > 0.0:
+                    sum_t += t
+                    hits += 1
+            n_shadow += shadow
+            n_bounce += bounce
+            if s < spp - 1:
+                continue
             for c in range(3):
                 mean = sum_l[c] / spp
                 out_rgb[j, i, c] = mean
@@ -506,7 +548,7 @@ def render_tiles(
     nodes, splits, refs, box, corners, watertight, tri_mat, tri_normals, tri_uv,
     mat_kind, mat_albedo, mat_emission, mat_ior, mat_tex, tex_pixels, tex_info,
     emit_tri, emit_cdf, tri_emit_pdf, sky_rgb, cam,
-    width, height, spp, max_depth, rr_depth, seed, first_sample, tile_size, tile_stride,
+    width, height, spp, max_depth, rr_depth, seed, first_sample, tile_size, tile_stride, camera_packets,
     out_rgb, out_var, out_albedo, out_normal, out_depth, counts,
 ):
     """Render every pixel into the ``out_*`` buffers, in parallel over tiles.
@@ -530,11 +572,14 @@ def render_tiles(
         st_ent = np.empty(STACK_SIZE, np.float64)
         st_ext = np.empty(STACK_SIZE, np.float64)
         ray = np.empty(RAY_SCRATCH)
+        lanes3, lanes, lane_ints, st_head, st_span = packet_scratch(PACKET_SIZE)
+        packet = (lanes3, lanes, lane_ints, st_head, st_span, np.empty(PACKET_SIZE, np.bool_),
+                  np.empty((PACKET_SIZE, 3)), np.empty((PACKET_SIZE, 3)), np.empty(PACKET_SIZE, np.uint64))
         render_tile(
             specular, textures, normals, sky, emitters, emitter_selection, aux,
             nodes, splits, refs, box, corners, watertight, tri_mat, tri_normals, tri_uv,
             mat_kind, mat_albedo, mat_emission, mat_ior, mat_tex, tex_pixels, tex_info,
             emit_tri, emit_cdf, tri_emit_pdf, sky_rgb, cam,
             width, height, spp, max_depth, rr_depth, seed, first_sample, tile_size, (k * tile_stride) % tiles, tiles_x,
-            st_node, st_ent, st_ext, ray, out_rgb, out_var, out_albedo, out_normal, out_depth, counts,
+            camera_packets, st_node, st_ent, st_ext, ray, packet, out_rgb, out_var, out_albedo, out_normal, out_depth, counts,
         )

@@ -209,6 +209,8 @@ class RenderConfig:
         Side of the square pixel tiles rendered in parallel (does not change the image).
     eye_separation : float
         Distance between the two pinholes of a stereo pair, scene units.
+    camera_packets : bool
+        Trace camera rays in packets of coherent rays (same image as one by one).
     """
 
     spp: int = 4
@@ -217,6 +219,7 @@ class RenderConfig:
     seed: int = 0
     tile_size: int = 16
     eye_separation: float = 0.065
+    camera_packets: bool = True
 
     def __post_init__(self) -> None:
         if self.spp < 1 or self.tile_size < 1 or self.rr_depth < 1:

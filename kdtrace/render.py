@@ -32,7 +32,7 @@ from pathlib import Path
 import numba
 import numpy as np
 
-from kdtrace import _kdtree_build, _kdtree_layout, _kdtree_traverse
+from kdtrace import _kdtree_build, _kdtree_layout, _kdtree_traverse, _packet_traverse
 from kdtrace import _render_kernels as kernels
 from kdtrace.cache import source_fingerprint
 from kdtrace.config import DEFAULT_CONFIG
@@ -242,7 +242,8 @@ def _pack(scene: Scene, tree: KDTree) -> dict[str, np.ndarray]:
 def renderer_fingerprint() -> str:
     """Digest of the source of the tree builder, the traversal, the path tracer and this
     module: part of the key of every cached timing of them (:func:`kdtrace.cache.source_fingerprint`)."""
-    return source_fingerprint(_kdtree_build, _kdtree_layout, _kdtree_traverse, kernels, sys.modules[__name__])
+    return source_fingerprint(_kdtree_build, _kdtree_layout, _kdtree_traverse, _packet_traverse, kernels,
+                              sys.modules[__name__])
 
 
 def tile_stride(tiles: int) -> int:
@@ -258,7 +259,7 @@ def tile_stride(tiles: int) -> int:
     return stride
 
 
-def _run(flags, packed, cam, width, height, spp, max_depth, rr_depth, seed, first_sample, tile_size, aux):
+def _run(flags, packed, cam, width, height, spp, max_depth, rr_depth, seed, first_sample, tile_size, aux, camera_packets):
     rgb = np.zeros((height, width, 3), np.float32)
     variance = np.zeros((height, width, 3), np.float32)
     shape = (height, width) if aux else (0, 0)
@@ -268,7 +269,7 @@ def _run(flags, packed, cam, width, height, spp, max_depth, rr_depth, seed, firs
     tiles = -(-width // tile_size) * -(-height // tile_size)
     counts = np.zeros((tiles, 4), np.int64)
     args = (*flags, *packed.values(), cam, width, height, spp, max_depth, rr_depth, np.uint64(seed), first_sample, tile_size,
-            tile_stride(tiles), rgb, variance, albedo, normal, depth, counts)
+            tile_stride(tiles), camera_packets, rgb, variance, albedo, normal, depth, counts)
     # numba resolves a ``literally`` kernel's argument types anew on every call: 70-100 ms
     # per call, measured 2026-12-02 on cbox-original (more than a whole 256x256 frame at
     # 1 spp). Once a specialisation exists, its machine code is called directly.
@@ -296,6 +297,7 @@ def render(
     camera: Camera | None = None,
     tree: KDTree | None = None,
     first_sample: int = 0,
+    camera_packets: bool | None = None,
 ) -> RenderResult:
     """Path trace ``scene`` from its camera on a KD-tree.
 
@@ -331,6 +333,9 @@ def render(
         (default 0). Renders of disjoint sample ranges are independent, and the
         spp-weighted mean of the ``rgb`` (and ``albedo``) of adjacent ranges is that of
         the render of their union, up to float rounding.
+    camera_packets : bool, optional
+        Trace camera rays in packets (default ``[render] camera_packets``); False traces
+        them one by one, the oracle. The image is the same bit for bit.
 
     Returns
     -------
@@ -361,6 +366,7 @@ def render(
     if isinstance(first_sample, bool) or not isinstance(first_sample, (int, np.integer)) or not 0 <= first_sample < 2**62:
         raise ValueError(f"first_sample must be an integer in [0, 2^62), got {first_sample!r}")
     first_sample = int(first_sample)
+    camera_packets = bool(config.camera_packets if camera_packets is None else camera_packets)
     camera = scene.camera if camera is None else camera
     _check_camera(camera)
     width = _positive_int("width", camera.width if width is None else width)
@@ -389,11 +395,11 @@ def render(
     rr_depth = config.rr_depth
 
     started = time.perf_counter()  # first call compiles (or loads from numba's cache)
-    _run(flags, packed, cam, 1, 1, 1, depth_limit, rr_depth, seed, 0, 1, aux)
+    _run(flags, packed, cam, 1, 1, 1, depth_limit, rr_depth, seed, 0, 1, aux, camera_packets)
     compile_seconds = time.perf_counter() - started
     started = time.perf_counter()
     rgb, variance, albedo, normal, depth, counts = _run(
-        flags, packed, cam, width, height, spp, depth_limit, rr_depth, seed, first_sample, tile_size, aux)
+        flags, packed, cam, width, height, spp, depth_limit, rr_depth, seed, first_sample, tile_size, aux, camera_packets)
     seconds = time.perf_counter() - started
     if aux and not (depth > 0).any():
         warnings.warn(f"scene {scene.name!r}: no camera ray hits geometry (the camera looks at nothing)",
@@ -411,7 +417,7 @@ def render(
         "kernel": "general" if chosen == ALL_FEATURES else "specialised",
         "compile_seconds": compile_seconds,
         "spp": spp, "first_sample": first_sample, "max_depth": depth_limit, "rr_depth": rr_depth, "seed": int(seed),
-        "width": width, "height": height, "tile_size": tile_size, "variant": tree.variant,
+        "width": width, "height": height, "tile_size": tile_size, "variant": tree.variant, "camera_packets": camera_packets,
         "threads": numba.get_num_threads(),
     }
     return RenderResult(

@@ -1,0 +1,369 @@
+"""numba kernel: closest hits of a packet of coherent rays traversed together.
+
+A packet (Wald et al. 2001; Wald 2004, ch. 7 for kd-trees) walks the tree once for all
+its rays: a node is fetched and decoded once per packet instead of once per ray, and
+each ray keeps its own interval, closest hit and active bit. Every ray makes at every
+node exactly the decision :func:`kdtrace._kdtree_traverse.trace_ray` makes (same
+near/far rule, same interval padding, same pruning by its closest hit), and its nodes
+come in the scalar walk's order, so each ray tests the same triangles in the same order
+and gets the same hit, bit for bit, with the same node and test counts. The scalar
+kernel stays the oracle; the tests compare the two ray by ray.
+
+The packet needs its active rays to agree on which child of a split is near (true for
+rays from one origin, e.g. a pinhole camera's, except on a split plane through that
+origin). Where they do not, :func:`trace_packet` gives up and returns False, and the
+caller traces the packet's rays one by one.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit, prange
+
+from kdtrace._kdtree_build import LEAF
+from kdtrace._kdtree_layout import HAS_TRIANGLES
+from kdtrace._kdtree_traverse import (
+    INTERVAL_PAD,
+    RAY_SCRATCH,
+    STACK_SIZE,
+    clip_to_box,
+    intersect_triangle,
+    intersect_triangle_watertight,
+    ray_shear,
+    trace_ray,
+)
+
+#: Most rays in one packet (bits of an int64 mask; 16 = two pixels at 8 spp).
+PACKET_SIZE = 16
+# Rows of the lane state: ``lanes3[kind, axis, lane]`` ...
+_ORIGIN, _DIRECTION, _INVERSE, _PERMUTED = 0, 1, 2, 3
+# ... ``lanes[row, lane]`` (float64) ...
+_ENT, _EXT, _BEST, _U, _V, _FAR_ENT, _FAR_EXT, _SHEAR_X, _SHEAR_Y, _SHEAR_Z = range(10)
+# ... and ``lane_ints[row, lane]``.
+_TRI, _VISITED, _TESTS, _KX, _KY, _KZ = range(6)
+#: Rows of a packet's results: closest t, u, v in ``lanes``, triangle in ``lane_ints``.
+PACKET_BEST, PACKET_U, PACKET_V, PACKET_TRI = _BEST, _U, _V, _TRI
+
+
+@njit(cache=True)
+def packet_scratch(size):
+    """Per-thread buffers of :func:`trace_packet` for packets of up to ``size`` rays.
+
+    Lane state as a structure of arrays, so that a loop over the lanes reads contiguous
+    rows: ``lanes3`` (4, 3, size) float64, ``lanes`` (10, size) float64, ``lane_ints``
+    (6, size) int64 (rows named by this module's ``_ORIGIN`` .. ``_KZ``), and the stack:
+    (node, rays entering unchecked, rays whose entry is checked) and the pushed intervals.
+    """
+    return (np.empty((4, 3, size)), np.empty((10, size)), np.empty((6, size), np.int64),
+            np.empty((STACK_SIZE, 3), np.int64), np.empty((STACK_SIZE, 2, size)))
+
+
+@njit(cache=True, inline="always")
+def _lane_mask(flags, n):
+    """Bit mask of the true entries of ``flags[:n]``."""
+    mask = 0
+    for r in range(n):
+        mask |= np.int64(flags[r]) << r
+    return mask
+
+
+@njit(cache=True, inline="always")
+def _test_triangle_uniform(tri, corners, kx, ky, kz, n, active, lanes3, lanes, lane_ints, hit):
+    """:func:`kdtrace._kdtree_traverse.intersect_triangle_watertight` for every lane at once.
+
+    All lanes share the shear's axes ``kx, ky, kz``, so the corners are read once and the
+    lane loop is branch-free (selects, no early outs); each lane's arithmetic is the
+    scalar test's, operation for operation, so its result is the same bit for bit.
+    """
+    ok = lanes3[_PERMUTED]
+    okx = ok[0]
+    oky = ok[1]
+    okz = ok[2]
+    shx = lanes[_SHEAR_X]
+    shy = lanes[_SHEAR_Y]
+    shz = lanes[_SHEAR_Z]
+    best = lanes[_BEST]
+    cax = np.float64(corners[tri, kx])
+    cay = np.float64(corners[tri, ky])
+    caz = np.float64(corners[tri, kz])
+    cbx = np.float64(corners[tri, 3 + kx])
+    cby = np.float64(corners[tri, 3 + ky])
+    cbz = np.float64(corners[tri, 3 + kz])
+    ccx = np.float64(corners[tri, 6 + kx])
+    ccy = np.float64(corners[tri, 6 + ky])
+    ccz = np.float64(corners[tri, 6 + kz])
+    u_out = lanes[_U]
+    v_out = lanes[_V]
+    tests = lane_ints[_TESTS]
+    for r in range(n):
+        on = (active >> r) & 1
+        tests[r] += on
+        az = caz - okz[r]
+        bz = cbz - okz[r]
+        cz = ccz - okz[r]
+        ax = (cax - okx[r]) - shx[r] * az
+        ay = (cay - oky[r]) - shy[r] * az
+        bx = (cbx - okx[r]) - shx[r] * bz
+        by = (cby - oky[r]) - shy[r] * bz
+        cx = (ccx - okx[r]) - shx[r] * cz
+        cy = (ccy - oky[r]) - shy[r] * cz
+        w0 = cx * by - cy * bx
+        w1 = ax * cy - ay * cx
+        w2 = bx * ay - by * ax
+        inside = not (((w0 < 0.0) | (w1 < 0.0) | (w2 < 0.0)) & ((w0 > 0.0) | (w1 > 0.0) | (w2 > 0.0)))
+        det = w0 + w1 + w2
+        t_scaled = (w0 * az + w1 * bz + w2 * cz) * shz[r]
+        negative = det < 0.0
+        det = -det if negative else det
+        t_scaled = -t_scaled if negative else t_scaled
+        w1 = -w1 if negative else w1
+        w2 = -w2 if negative else w2
+        b = best[r]
+        inv = 1.0 / det
+        t = t_scaled * inv
+        good = (on == 1) & inside & (det != 0.0) & (t_scaled > 0.0 * det) & (t_scaled < b * det) & (t < b)
+        hit[r] = good
+        best[r] = t if good else b
+        u_out[r] = w1 * inv if good else u_out[r]
+        v_out[r] = w2 * inv if good else v_out[r]
+    tri_out = lane_ints[_TRI]
+    for r in range(n):
+        tri_out[r] = tri if hit[r] else tri_out[r]
+
+
+@njit(cache=True, inline="always")
+def trace_packet(nodes, splits, refs, box, corners, origins, directions, n, tmax, watertight, scratch):
+    """Closest hits of rays ``0 .. n-1`` (n <= the scratch's size, <= 63) over ``(0, tmax)``.
+
+    ``origins`` and ``directions`` are (n, 3) float64; the tree arrays are those of
+    :func:`kdtrace._kdtree_traverse.trace_ray`; ``scratch`` comes from :func:`packet_scratch`
+    (plus a bool lane buffer as its last item). On success returns True, with each ray's t
+    (inf on a miss), u, v in ``lanes[_BEST]``, ``lanes[_U]``, ``lanes[_V]`` and its
+    triangle (-1 on a miss), nodes visited and triangle tests in ``lane_ints[_TRI]``,
+    ``lane_ints[_VISITED]`` and ``lane_ints[_TESTS]``. Returns False, with nothing usable,
+    when two active rays disagree on a split's near child.
+    """
+    lanes3, lanes, lane_ints, st_head, st_span, flags = scratch
+    origin = lanes3[_ORIGIN]
+    direction = lanes3[_DIRECTION]
+    inverse = lanes3[_INVERSE]
+    ent_l = lanes[_ENT]
+    ext_l = lanes[_EXT]
+    best = lanes[_BEST]
+    far_ent = lanes[_FAR_ENT]
+    far_ext = lanes[_FAR_EXT]
+    visited = lane_ints[_VISITED]
+    active = 0
+    uniform_axes = True
+    for r in range(PACKET_SIZE):
+        q = r if r < n else 0
+        ox, oy, oz = origins[q, 0], origins[q, 1], origins[q, 2]
+        dx, dy, dz = directions[q, 0], directions[q, 1], directions[q, 2]
+        ent, ext = clip_to_box(box, ox, oy, oz, dx, dy, dz, 0.0, tmax)
+        origin[0, r], origin[1, r], origin[2, r] = ox, oy, oz
+        direction[0, r], direction[1, r], direction[2, r] = dx, dy, dz
+        inverse[0, r] = 1.0 / dx if dx != 0.0 else np.inf
+        inverse[1, r] = 1.0 / dy if dy != 0.0 else np.inf
+        inverse[2, r] = 1.0 / dz if dz != 0.0 else np.inf
+        ent_l[r] = ent
+        ext_l[r] = ext
+        best[r] = tmax
+        lanes[_U, r] = 0.0
+        lanes[_V, r] = 0.0
+        lane_ints[_TRI, r] = -1
+        visited[r] = 0
+        lane_ints[_TESTS, r] = 0
+        if watertight:
+            kx, ky, kz, sx, sy, sz = ray_shear(dx, dy, dz)
+            lane_ints[_KX, r], lane_ints[_KY, r], lane_ints[_KZ, r] = kx, ky, kz
+            lanes3[_PERMUTED, 0, r] = origin[kx, r]
+            lanes3[_PERMUTED, 1, r] = origin[ky, r]
+            lanes3[_PERMUTED, 2, r] = origin[kz, r]
+            lanes[_SHEAR_X, r], lanes[_SHEAR_Y, r], lanes[_SHEAR_Z, r] = sx, sy, sz
+            uniform_axes = uniform_axes and kz == lane_ints[_KZ, 0]
+        if ent <= ext and r < n:
+            active |= 1 << r
+    spans = np.uint64(nodes.shape[0] >> 2)
+    node = np.uint64(0)
+    sp = 0
+    while active != 0:
+        word = nodes[np.uint64(2) * node]
+        axis = word & 3
+        if axis == LEAF:
+            first = nodes[np.uint64(2) * node + np.uint64(1)]
+            count = word >> 2
+        elif word & HAS_TRIANGLES:
+            first = nodes[np.uint64(2) * (spans + node)]
+            count = nodes[np.uint64(2) * (spans + node) + np.uint64(1)]
+        else:
+            first = 0
+            count = 0
+        for r in range(PACKET_SIZE):
+            visited[r] += (active >> r) & 1
+        # Triangle-major: one triangle's corners are read once for every active ray.
+        for k in range(first, first + count):
+            tri = refs[np.uint64(k)]
+            if watertight and uniform_axes:
+                _test_triangle_uniform(tri, corners, lane_ints[_KX, 0], lane_ints[_KY, 0], lane_ints[_KZ, 0],
+                                       PACKET_SIZE, active, lanes3, lanes, lane_ints, flags)
+                continue
+            for r in range(PACKET_SIZE):
+                if not (active >> r) & 1:
+                    continue
+                lane_ints[_TESTS, r] += 1
+                if watertight:
+                    t, u, v = intersect_triangle_watertight(
+                        tri, corners, lanes3[_PERMUTED, 0, r], lanes3[_PERMUTED, 1, r], lanes3[_PERMUTED, 2, r],
+                        lane_ints[_KX, r], lane_ints[_KY, r], lane_ints[_KZ, r],
+                        lanes[_SHEAR_X, r], lanes[_SHEAR_Y, r], lanes[_SHEAR_Z, r], 0.0, best[r])
+                else:
+                    t, u, v = intersect_triangle(tri, corners, origin[0, r], origin[1, r], origin[2, r],
+                                                 direction[0, r], direction[1, r], direction[2, r], 0.0, best[r])
+                if t < best[r]:
+                    best[r] = t
+                    lanes[_U, r] = u
+                    lanes[_V, r] = v
+                    lane_ints[_TRI, r] = tri
+        if axis != LEAF:
+            left = np.uint64(word >> 3)
+            split = np.float64(splits[np.uint64(2) * node + np.uint64(1)])
+            o_row = origin[axis]
+            d_row = direction[axis]
+            i_row = inverse[axis]
+            # Every lane's decision, branch-free: the scalar walk's cases in its order
+            # (lying in the plane: both children over the same interval; parallel to it or
+            # starting on it: near only; the plane outside the interval or past the closest
+            # hit: near only; before the entry: far only; else both, split at the plane).
+            left_near = 0
+            go_near = 0
+            go_far = 0
+            far_checked = 0
+            for r in range(PACKET_SIZE):
+                o_axis = o_row[r]
+                d_axis = d_row[r]
+                ent = ent_l[r]
+                ext = ext_l[r]
+                t_plane = (split - o_axis) * i_row[r]
+                on_plane = o_axis == split
+                parallel = d_axis == 0.0
+                lying = parallel & on_plane
+                one_child = parallel | on_plane
+                near_only = (not one_child) & ((t_plane > ext * INTERVAL_PAD) | (t_plane <= 0.0) | (t_plane > best[r]))
+                decided = one_child | near_only
+                far_only = (not decided) & (t_plane * INTERVAL_PAD < ent)
+                both = (not decided) & (not far_only)
+                on = np.int64((active >> r) & 1)
+                left_near |= (np.int64((o_axis < split) | (on_plane & (d_axis <= 0.0))) & on) << r
+                go_near |= (np.int64(not far_only) & on) << r
+                go_far |= (np.int64(lying | far_only | both) & on) << r
+                far_checked |= (np.int64(lying | both) & on) << r
+                far_ent[r] = t_plane if both else ent
+                far_ext[r] = ext
+                ext_l[r] = t_plane if both else ext
+            if left_near != 0 and left_near != active:
+                return False
+            near = left if left_near != 0 else left + np.uint64(1)
+            far = left + np.uint64(1) if left_near != 0 else left
+            if go_far != 0:
+                # Pushed before the near child is walked: each ray meets its far child after its
+                # near subtree, as in the scalar walk (a far-only ray waits, doing nothing).
+                st_head[sp, 0] = np.int64(far)
+                st_head[sp, 1] = go_far & ~far_checked
+                st_head[sp, 2] = far_checked
+                pushed_ent = st_span[sp, 0]
+                pushed_ext = st_span[sp, 1]
+                for r in range(PACKET_SIZE):
+                    pushed_ent[r] = far_ent[r]
+                    pushed_ext[r] = far_ext[r]
+                sp += 1
+            if go_near != 0:
+                node = near
+                active = go_near
+                continue
+        # Resume with the next entry that has a ray left: a ray the scalar walk would have
+        # pushed stays only if its closest hit does not precede the entry.
+        active = 0
+        while sp > 0:
+            sp -= 1
+            pushed_ent = st_span[sp, 0]
+            pushed_ext = st_span[sp, 1]
+            checked = st_head[sp, 2]
+            mask = st_head[sp, 1]
+            for r in range(PACKET_SIZE):
+                mask |= (np.int64(pushed_ent[r] <= best[r]) & ((checked >> r) & 1)) << r
+            if mask != 0:
+                node = np.uint64(st_head[sp, 0])
+                active = mask
+                for r in range(PACKET_SIZE):
+                    on = (mask >> r) & 1 == 1
+                    ent_l[r] = pushed_ent[r] if on else ent_l[r]
+                    ext_l[r] = pushed_ext[r] if on else ext_l[r]
+                break
+    for r in range(PACKET_SIZE):
+        if lane_ints[_TRI, r] < 0:
+            best[r] = np.inf
+            lanes[_U, r] = 0.0
+            lanes[_V, r] = 0.0
+    return True
+
+
+@njit(cache=True, parallel=True)
+def trace_batch_packets(
+    nodes, splits, refs, box, corners, origins, directions, tmax, watertight, packet_size, n_chunks,
+    out_t, out_tri, out_u, out_v, out_visited, out_tests,
+):
+    """Closest hits of every ray over ``(0, tmax[i])``, consecutive rays in packets of ``packet_size``.
+
+    The outputs are those of :func:`kdtrace._kdtree_traverse.trace_batch` with
+    ``any_hit=False`` and ``tmin = 0``; a packet whose rays disagree on a near child, or
+    whose rays have different ``tmax``, is traced ray by ray by
+    :func:`kdtrace._kdtree_traverse.trace_ray`.
+    """
+    n = origins.shape[0]
+    packets = (n + packet_size - 1) // packet_size
+    per_chunk = (packets + n_chunks - 1) // n_chunks
+    for c in prange(n_chunks):
+        lanes3, lanes, lane_ints, st_head, st_span = packet_scratch(PACKET_SIZE)
+        scratch = (lanes3, lanes, lane_ints, st_head, st_span, np.empty(packet_size, np.bool_))
+        s_node = np.empty(STACK_SIZE, np.int32)
+        s_ent = np.empty(STACK_SIZE, np.float64)
+        s_ext = np.empty(STACK_SIZE, np.float64)
+        ray = np.empty(RAY_SCRATCH)
+        org = np.empty((packet_size, 3))
+        dirs = np.empty((packet_size, 3))
+        for p in range(c * per_chunk, min(packets, (c + 1) * per_chunk)):
+            start = p * packet_size
+            m = min(packet_size, n - start)
+            same_tmax = True
+            for r in range(m):
+                for k in range(3):
+                    org[r, k] = origins[start + r, k]
+                    dirs[r, k] = directions[start + r, k]
+                same_tmax = same_tmax and tmax[start + r] == tmax[start]
+            if same_tmax and trace_packet(nodes, splits, refs, box, corners, org, dirs, m, tmax[start], watertight,
+                                          scratch):
+                for r in range(m):
+                    out_t[start + r] = lanes[_BEST, r]
+                    out_tri[start + r] = lane_ints[_TRI, r]
+                    out_u[start + r] = lanes[_U, r]
+                    out_v[start + r] = lanes[_V, r]
+                    out_visited[start + r] = lane_ints[_VISITED, r]
+                    out_tests[start + r] = lane_ints[_TESTS, r]
+                continue
+            for r in range(m):
+                i = start + r
+                t, tri, u, v, visited, tests = trace_ray(
+                    nodes, splits, refs, box, corners, org[r, 0], org[r, 1], org[r, 2], dirs[r, 0], dirs[r, 1],
+                    dirs[r, 2], 0.0, tmax[i], False, watertight, s_node, s_ent, s_ext, ray)
+                out_t[i] = t
+                out_tri[i] = tri
+                out_u[i] = u
+                out_v[i] = v
+                out_visited[i] = visited
+                out_tests[i] = tests
+
+
+@njit(cache=True)
+def trace_packet_outlined(nodes, splits, refs, box, corners, origins, directions, n, tmax, watertight, scratch):
+    """:func:`trace_packet` as a function of its own, for callers it would bloat if inlined."""
+    return trace_packet(nodes, splits, refs, box, corners, origins, directions, n, tmax, watertight, scratch)

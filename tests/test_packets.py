@@ -1,0 +1,182 @@
+"""Packet traversal against the scalar kernel (its oracle): the same hits and counters, ray by ray.
+
+:mod:`kdtrace._packet_traverse` claims that every ray of a packet makes the scalar walk's
+decisions in the scalar walk's order, so t, triangle, u, v, nodes visited and triangle
+tests are the scalar kernel's bit for bit. Checked on the stress scenes with every ray
+kind of :mod:`tests.strategies` (origins on split planes, rays lying in them, zero and
+signed-zero direction components, rays through vertices and edges), grouped into
+packets that share an origin (the packets camera rays make) and as they come; on real
+scenes' camera rays; and through the path tracer, whose images must not change.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import warnings
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, Phase, given, settings
+from hypothesis import strategies as st
+
+from kdtrace import _kdtree_traverse as scalar_kernels
+from kdtrace import _packet_traverse as packet_kernels
+from kdtrace.config import KDTreeConfig
+from kdtrace.kdtree import VARIANTS, build_kdtree, validate_rays
+from kdtrace.rays import camera_rays
+from kdtrace.render import ALL_FEATURES, render
+from kdtrace.scene import Sky
+from kdtrace.scenes import load_scene
+from tests.strategies import RAY_KINDS, make_rays, stress_scenes, tree_configs
+
+pytestmark = [
+    pytest.mark.filterwarnings("ignore:invalid value encountered:RuntimeWarning"),
+    pytest.mark.filterwarnings("ignore:overflow encountered:RuntimeWarning"),
+]
+
+OUTPUTS = ("t", "triangle", "u", "v", "nodes visited", "triangle tests")
+
+
+@pytest.fixture(scope="module", autouse=True)
+def tree_cache(tmp_path_factory):
+    """Keep this module's KD-trees out of the working directory's cache."""
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setenv("KDTRACE_CACHE", str(tmp_path_factory.mktemp("cache")))
+        yield
+
+
+def _outputs(n: int) -> list[np.ndarray]:
+    return [np.empty(n), np.empty(n, np.int32), np.empty(n), np.empty(n), np.empty(n, np.int32), np.empty(n, np.int32)]
+
+
+def trace_both(tree, origins, directions, tmax=np.inf, packet_size=packet_kernels.PACKET_SIZE):
+    """(scalar, packet) outputs of the closest-hit queries over (0, tmax)."""
+    origins, directions, tmin, tmax = validate_rays(origins, directions, 0.0, tmax)
+    n = len(origins)
+    chunks = max(1, min(n, 4))
+    scalar = _outputs(n)
+    scalar_kernels.trace_batch(tree.node_words, tree.node_splits, tree.refs, tree.box, tree.corners, origins,
+                               directions, tmin, tmax, False, tree.watertight, chunks, *scalar)
+    packet = _outputs(n)
+    packet_kernels.trace_batch_packets(tree.node_words, tree.node_splits, tree.refs, tree.box, tree.corners,
+                                       origins, directions, tmax, tree.watertight, packet_size, chunks, *packet)
+    return scalar, packet
+
+
+def assert_same(scalar, packet, context: str) -> None:
+    for name, a, b in zip(OUTPUTS, scalar, packet, strict=True):
+        differ = np.flatnonzero(~((a == b) | (np.isnan(a) & np.isnan(b))) if a.dtype.kind == "f" else a != b)
+        assert len(differ) == 0, f"{context}: {name} differs on {len(differ)} rays, first {differ[:5]}: {a[differ[:5]]} != {b[differ[:5]]}"
+
+
+def shared_origins(origins: np.ndarray, size: int) -> np.ndarray:
+    """Every ray takes the origin of the first ray of its packet (a camera's packets)."""
+    first = (np.arange(len(origins)) // size) * size
+    return origins[first]
+
+
+def packet_runs(tree, origins, directions) -> int:
+    """How many packets of ``PACKET_SIZE`` consecutive rays :func:`trace_packet` completes."""
+    origins, directions, _, _ = validate_rays(origins, directions, 0.0, np.inf)
+    size = packet_kernels.PACKET_SIZE
+    scratch = (*packet_kernels.packet_scratch(size), np.empty(size, np.bool_))
+    done = 0
+    for start in range(0, len(origins), size):
+        n = min(size, len(origins) - start)
+        done += packet_kernels.trace_packet(tree.node_words, tree.node_splits, tree.refs, tree.box, tree.corners,
+                                            origins[start:start + n], directions[start:start + n], n, np.inf,
+                                            tree.watertight, scratch)
+    return done
+
+
+fast = settings(max_examples=12, deadline=None, derandomize=True, database=None, phases=[Phase.explicit, Phase.generate],
+                suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
+
+
+@fast
+@given(case=stress_scenes(max_triangles=400), config=tree_configs, seed=st.integers(0, 2**16),
+       ray_kind=st.sampled_from(RAY_KINDS), triangle_test=st.sampled_from(["watertight", "moller-trumbore"]))
+def test_packets_give_the_scalar_kernels_hits_and_counters(case, config, seed, ray_kind, triangle_test):
+    config = dataclasses.replace(config, triangle_test=triangle_test)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)  # zero-area triangles left out (expected here)
+        trees = {variant: build_kdtree(case.scene, variant, config, cache=False) for variant in VARIANTS}
+    origins, directions = make_rays(ray_kind, case.scene, trees["naive"], 203, seed)  # 12 full packets and a partial one
+    for variant, tree in trees.items():
+        for label, o in (("own origins", origins), ("shared origins", shared_origins(origins, packet_kernels.PACKET_SIZE))):
+            scalar, packet = trace_both(tree, o, directions)
+            assert_same(scalar, packet, f"{case!r}, {variant}, {ray_kind} rays, {label}")
+
+
+def test_packets_split_at_a_plane_through_their_origin_fall_back_to_single_rays():
+    """A shared origin on a split plane, directions on both sides of it: the rays disagree
+    on the near child, the packet gives up, and the single rays give the scalar answers."""
+    scene = load_scene("cbox-original")
+    tree = build_kdtree(scene, "local", KDTreeConfig(), cache=False)
+    axis = int(tree.node_words[0] & 3)  # the root's split (every ray inside the box meets it)
+    assert axis < 3
+    origin = (tree.box[:3] + tree.box[3:]).astype(np.float64) / 2
+    origin[axis] = tree.node_splits[1]
+    rng = np.random.default_rng(5)
+    directions = rng.normal(size=(16, 3))
+    directions[:, axis] = np.where(np.arange(16) % 2 == 0, 1.0, -1.0) * np.abs(directions[:, axis])
+    origins = np.repeat(origin[None], 16, axis=0)
+    assert packet_runs(tree, origins, directions) == 0
+    scalar, packet = trace_both(tree, origins, directions)
+    assert_same(scalar, packet, "origin on a split plane")
+    assert (scalar[1] >= 0).any()
+
+
+def test_packets_with_different_tmax_fall_back_to_single_rays():
+    scene = load_scene("cbox-original")
+    tree = build_kdtree(scene, "local", KDTreeConfig(), cache=False)
+    origins, directions = camera_rays(scene.camera, 8, 4)
+    tmax = np.where(np.arange(32) % 3 == 0, 1.0, np.inf)
+    scalar, packet = trace_both(tree, origins, directions, tmax)
+    assert_same(scalar, packet, "mixed tmax")
+    assert np.isinf(scalar[0][::3]).any() and np.isfinite(scalar[0]).any()
+
+
+@pytest.mark.parametrize("name", ["cbox-sphere", "car"])
+def test_camera_ray_packets_on_real_scenes(name):
+    """Jittered camera rays, pixel after pixel with 8 samples each (the renderer's order)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # MTL keys the loader does not use
+        scene = load_scene(name)
+    rng = np.random.default_rng(11)
+    samples = [camera_rays(scene.camera, 48, 40, jitter=True, rng=rng) for _ in range(8)]
+    origins = np.stack([s[0] for s in samples], axis=1).reshape(-1, 3)
+    directions = np.stack([s[1] for s in samples], axis=1).reshape(-1, 3)
+    for variant in VARIANTS:
+        tree = build_kdtree(scene, variant)
+        for size in (1, 5, packet_kernels.PACKET_SIZE):
+            scalar, packet = trace_both(tree, origins, directions, packet_size=size)
+            assert_same(scalar, packet, f"{name} {variant} camera rays, packets of {size}")
+        # Not vacuous: the packets do run (they fall back only on a split plane through the camera).
+        assert packet_runs(tree, origins, directions) == -(-len(origins) // packet_kernels.PACKET_SIZE)
+        assert (scalar[1] >= 0).mean() > 0.5
+
+
+@pytest.mark.parametrize(("name", "sky"), [("cbox-original", False), ("cbox-sphere", False), ("car", True)])
+def test_renders_with_camera_packets_equal_the_scalar_renders(name, sky):
+    """Bit for bit, with the aux buffers, at a size that leaves partial tiles and an spp that
+    makes packets span pixels; mirror and glass (cbox-sphere), textures (car) and a sky."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        scene = load_scene(name)
+    if sky:
+        scene = dataclasses.replace(scene, sky=Sky((0.3, 0.4, 0.5)),
+                                    cameras=[dataclasses.replace(scene.camera, fov=150.0)])
+    tree = build_kdtree(scene)
+    for max_depth, spp in ((1, 3), (3, 5)):
+        images = {}
+        for packets in (False, True):
+            result = render(scene, spp=spp, max_depth=max_depth, seed=17, width=37, height=21, tile_size=16,
+                            tree=tree, features=ALL_FEATURES if sky else None, camera_packets=packets)
+            images[packets] = result
+        a, b = images[False], images[True]
+        for field in ("rgb", "variance", "albedo", "normal", "depth"):
+            assert np.array_equal(getattr(a, field), getattr(b, field)), f"{name}, max_depth {max_depth}: {field}"
+        assert a.stats["rays"] == b.stats["rays"]
+        assert b.stats["camera_packets"] and not a.stats["camera_packets"]
+        assert a.rgb.max() > 0.0
