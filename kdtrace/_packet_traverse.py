@@ -133,7 +133,13 @@ def _test_triangle_uniform(tri, corners, kx, ky, kz, n, active, lanes3, lanes, l
 
 @njit(cache=True, inline="always")
 def trace_packet(nodes, splits, refs, box, corners, origins, directions, n, tmax, watertight, scratch):
-    """Closest hits of rays ``0 .. n-1`` (n <= the scratch's size, <= 63) over ``(0, tmax)``.
+    """Closest hits of rays ``0 .. n-1`` (n <= :data:`PACKET_SIZE`) over ``(0, tmax)``.
+
+    Inline it into a function with ``error_model="numpy"`` that allocates ``scratch``
+    itself: the lane loops divide by zero on lanes they then discard (numba's Python
+    error model would check every division, and it ran 1.8x slower), and with the
+    buffers passed in from a caller LLVM must assume they alias (1.8x slower again;
+    Crytek Sponza's camera rays, one thread, 2026-12-04).
 
     ``origins`` and ``directions`` are (n, 3) float64; the tree arrays are those of
     :func:`kdtrace._kdtree_traverse.trace_ray`; ``scratch`` comes from :func:`packet_scratch`
@@ -307,7 +313,7 @@ def trace_packet(nodes, splits, refs, box, corners, origins, directions, n, tmax
     return True
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, parallel=True, error_model="numpy")
 def trace_batch_packets(
     nodes, splits, refs, box, corners, origins, directions, tmax, watertight, packet_size, n_chunks,
     out_t, out_tri, out_u, out_v, out_visited, out_tests,
@@ -362,8 +368,3 @@ def trace_batch_packets(
                 out_visited[i] = visited
                 out_tests[i] = tests
 
-
-@njit(cache=True)
-def trace_packet_outlined(nodes, splits, refs, box, corners, origins, directions, n, tmax, watertight, scratch):
-    """:func:`trace_packet` as a function of its own, for callers it would bloat if inlined."""
-    return trace_packet(nodes, splits, refs, box, corners, origins, directions, n, tmax, watertight, scratch)
