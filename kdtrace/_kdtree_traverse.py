@@ -176,6 +176,23 @@ def clip_to_box(box, ox, oy, oz, dx, dy, dz, tmin, tmax):
     return t0, t1
 
 
+@njit(cache=True, inline="always")
+def decode_node(nodes, node, spans):
+    """``(word, axis, first, count)`` of node ``node`` of :func:`trace_ray`'s flat ``nodes``.
+
+    ``axis`` is the split axis (:data:`LEAF` for a leaf) and ``first, count`` the node's
+    span of ``refs``: a leaf's triangles, a local-branch interior node's pulled-up ones
+    (in its cold half, rows ``spans + node``), or none. ``spans`` is the node count.
+    """
+    word = nodes[np.uint64(2) * node]
+    axis = word & 3
+    if axis == LEAF:
+        return word, axis, nodes[np.uint64(2) * node + np.uint64(1)], word >> 2
+    if word & HAS_TRIANGLES:
+        return word, axis, nodes[np.uint64(2) * (spans + node)], nodes[np.uint64(2) * (spans + node) + np.uint64(1)]
+    return word, axis, 0, 0
+
+
 @njit(cache=True, inline="always")  # inlined: no per-ray call, no reference counting of the arrays
 def trace_ray(
     nodes, splits, refs, box, corners,
@@ -224,17 +241,7 @@ def trace_ray(
     sp = 0
     while True:
         visited += 1
-        word = nodes[np.uint64(2) * node]
-        axis = word & 3
-        if axis == LEAF:
-            first = nodes[np.uint64(2) * node + np.uint64(1)]
-            count = word >> 2
-        elif word & HAS_TRIANGLES:
-            first = nodes[np.uint64(2) * (spans + node)]
-            count = nodes[np.uint64(2) * (spans + node) + np.uint64(1)]
-        else:
-            first = 0
-            count = 0
+        word, axis, first, count = decode_node(nodes, node, spans)
         if count > 0:
             for k in range(first, first + count):
                 tri = refs[np.uint64(k)]

@@ -21,12 +21,12 @@ import numpy as np
 from numba import njit, prange
 
 from kdtrace._kdtree_build import LEAF
-from kdtrace._kdtree_layout import HAS_TRIANGLES
 from kdtrace._kdtree_traverse import (
     INTERVAL_PAD,
     RAY_SCRATCH,
     STACK_SIZE,
     clip_to_box,
+    decode_node,
     intersect_triangle,
     intersect_triangle_watertight,
     ray_shear,
@@ -193,17 +193,7 @@ def trace_packet(nodes, splits, refs, box, corners, origins, directions, n, tmax
     node = np.uint64(0)
     sp = 0
     while active != 0:
-        word = nodes[np.uint64(2) * node]
-        axis = word & 3
-        if axis == LEAF:
-            first = nodes[np.uint64(2) * node + np.uint64(1)]
-            count = word >> 2
-        elif word & HAS_TRIANGLES:
-            first = nodes[np.uint64(2) * (spans + node)]
-            count = nodes[np.uint64(2) * (spans + node) + np.uint64(1)]
-        else:
-            first = 0
-            count = 0
+        word, axis, first, count = decode_node(nodes, node, spans)
         for r in range(PACKET_SIZE):
             visited[r] += (active >> r) & 1
         # Triangle-major: one triangle's corners are read once for every active ray.
