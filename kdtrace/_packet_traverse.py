@@ -51,11 +51,12 @@ def packet_scratch(size):
 
     Lane state as a structure of arrays, so that a loop over the lanes reads contiguous
     rows: ``lanes3`` (4, 3, size) float64, ``lanes`` (10, size) float64, ``lane_ints``
-    (6, size) int64 (rows named by this module's ``_ORIGIN`` .. ``_KZ``), and the stack:
-    (node, rays entering unchecked, rays whose entry is checked) and the pushed intervals.
+    (6, size) int64 (rows named by this module's ``_ORIGIN`` .. ``_KZ``), the stack:
+    (node, rays entering unchecked, rays whose entry is checked) and the pushed intervals,
+    and a bool per lane (the triangle test's hits).
     """
     return (np.empty((4, 3, size)), np.empty((10, size)), np.empty((6, size), np.int64),
-            np.empty((STACK_SIZE, 3), np.int64), np.empty((STACK_SIZE, 2, size)))
+            np.empty((STACK_SIZE, 3), np.int64), np.empty((STACK_SIZE, 2, size)), np.empty(size, np.bool_))
 
 
 @njit(cache=True, inline="always")
@@ -142,8 +143,8 @@ def trace_packet(nodes, splits, refs, box, corners, origins, directions, n, tmax
     Crytek Sponza's camera rays, one thread, 2026-12-04).
 
     ``origins`` and ``directions`` are (n, 3) float64; the tree arrays are those of
-    :func:`kdtrace._kdtree_traverse.trace_ray`; ``scratch`` comes from :func:`packet_scratch`
-    (plus a bool lane buffer as its last item). On success returns True, with each ray's t
+    :func:`kdtrace._kdtree_traverse.trace_ray`; ``scratch`` comes from :func:`packet_scratch`.
+    On success returns True, with each ray's t
     (inf on a miss), u, v in ``lanes[_BEST]``, ``lanes[_U]``, ``lanes[_V]`` and its
     triangle (-1 on a miss), nodes visited and triangle tests in ``lane_ints[_TRI]``,
     ``lane_ints[_VISITED]`` and ``lane_ints[_TESTS]``. Returns False, with nothing usable,
@@ -319,8 +320,9 @@ def trace_batch_packets(
     packets = (n + packet_size - 1) // packet_size
     per_chunk = (packets + n_chunks - 1) // n_chunks
     for c in prange(n_chunks):
-        lanes3, lanes, lane_ints, st_head, st_span = packet_scratch(PACKET_SIZE)
-        scratch = (lanes3, lanes, lane_ints, st_head, st_span, np.empty(packet_size, np.bool_))
+        scratch = packet_scratch(PACKET_SIZE)
+        lanes = scratch[1]
+        lane_ints = scratch[2]
         s_node = np.empty(STACK_SIZE, np.int32)
         s_ent = np.empty(STACK_SIZE, np.float64)
         s_ext = np.empty(STACK_SIZE, np.float64)

@@ -448,8 +448,9 @@ def render_tile(
     st_ext = np.empty(STACK_SIZE, np.float64)
     ray = np.empty(RAY_SCRATCH)
     scratch = (st_node, st_ent, st_ext, ray)
-    lanes3, lanes, lane_ints, st_head, st_span = packet_scratch(PACKET_SIZE)
-    lane_scratch = (lanes3, lanes, lane_ints, st_head, st_span, np.empty(PACKET_SIZE, np.bool_))
+    lane_scratch = packet_scratch(PACKET_SIZE)
+    lanes = lane_scratch[1]
+    lane_ints = lane_scratch[2]
     origins = np.empty((PACKET_SIZE, 3))
     directions = np.empty((PACKET_SIZE, 3))
     keys = np.empty(PACKET_SIZE, np.uint64)
@@ -554,7 +555,7 @@ def render_tile(
                     out_albedo[py, px, c] = sum_a[c] / spp
                     out_normal[py, px, c] = sum_n[c] / norm if norm > 0.0 else 0.0
                 out_depth[py, px] = sum_t / hits if hits > 0 else 0.0
-    pixels = (min(ty0 + tile_size, height) - ty0) * (min(tx0 + tile_size, width) - tx0)
+    pixels = tile_w * tile_h
     counts[tile, COUNT_CAMERA] = pixels * spp
     counts[tile, COUNT_SHADOW] = n_shadow
     counts[tile, COUNT_BOUNCE] = n_bounce

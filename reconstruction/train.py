@@ -423,7 +423,7 @@ def _resolve(profile: str | ReconstructionProfile) -> ReconstructionProfile:
 
 
 def _training_dir(kind: str, model: nn.Module, loss_fn: nn.Module, data_hash: str,
-                  profile: ReconstructionProfile, warmup_steps: int = 0, learning_rate: float | None = None,
+                  profile: ReconstructionProfile, learning_rate: float, warmup_steps: int = 0,
                   decay: str = "constant") -> Path:
     # the loss is part of the identity: the same net and data trained on another loss is another model
     loss = getattr(loss_fn, "config", None) or type(loss_fn).__name__
@@ -432,7 +432,7 @@ def _training_dir(kind: str, model: nn.Module, loss_fn: nn.Module, data_hash: st
     # warm-up and decay enter only when used (earlier models keep their keys); a decay's schedule
     # depends on the epoch count, so with one raising `epochs` is another model, not a resume
     key = content_key(kind, architecture(model), parameter_count(model), loss, data_hash, profile.batch_size,
-                      profile.learning_rate if learning_rate is None else learning_rate, profile.seed,
+                      learning_rate, profile.seed,
                       *(["bf16"] if precision == "bf16" else []),
                       *(["warmup", warmup_steps] if warmup_steps else []),
                       *(["decay", decay, profile.epochs] if decay != "constant" else []))
@@ -619,24 +619,25 @@ def train_superres(profile: str | ReconstructionProfile = "quick", scene_names: 
         from reconstruction.loss import SUPERRESOLUTION_SIGMA, EdgeAwareLoss
 
         loss_fn = EdgeAwareLoss(SUPERRESOLUTION_SIGMA)
-    directory = _training_dir("superres", model, loss_fn, data_hash, profile) if directory is None else Path(directory)
+    directory = (_training_dir("superres", model, loss_fn, data_hash, profile, profile.learning_rate)
+                 if directory is None else Path(directory))
     precision = resolve_precision(profile.precision)[0]
     result = fit(model, loss_fn, data, directory, data_hash, profile.epochs, profile.batch_size,
                  profile.learning_rate, profile.seed, _identity, psnr, progress, precision, profile.patience)
     if "test" in data:
         metrics = evaluate(result.model, data["test"], loss_fn, _identity, psnr)
         metrics["bicubic"] = evaluate(nn.Identity(), data["test"], loss_fn, _identity, psnr)
-        _write_result(result, metrics, list(scene_names), profile)
+        _write_result(result, metrics, list(scene_names), profile, profile.learning_rate)
     return result
 
 
 def _write_result(result: TrainResult, test: dict[str, Any], scenes: list[str], profile: ReconstructionProfile,
-                  warmup_steps: int = 0, learning_rate: float | None = None, decay: str = "constant") -> None:
+                  learning_rate: float, warmup_steps: int = 0, decay: str = "constant") -> None:
     """``result.json``: test metrics of the kept weights, best epoch, data hash, settings, provenance."""
     precision, note = resolve_precision(profile.precision)
     record = {"scenes": scenes, "test": test, "best_epoch": result.best_epoch, "epochs_run": len(result.history),
               "precision": precision, "precision_note": note, "warmup_steps": warmup_steps,
-              "learning_rate": profile.learning_rate if learning_rate is None else learning_rate, "decay": decay,
+              "learning_rate": learning_rate, "decay": decay,
               "data_hash": result.data_hash,
               **architecture(result.model), "parameters": parameter_count(result.model),
               "provenance": stamp(dataclasses.asdict(profile))}

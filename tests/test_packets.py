@@ -79,7 +79,7 @@ def packet_runs(tree, origins, directions) -> int:
     """How many packets of ``PACKET_SIZE`` consecutive rays :func:`trace_packet` completes."""
     origins, directions, _, _ = validate_rays(origins, directions, 0.0, np.inf)
     size = packet_kernels.PACKET_SIZE
-    scratch = (*packet_kernels.packet_scratch(size), np.empty(size, np.bool_))
+    scratch = packet_kernels.packet_scratch(size)
     done = 0
     for start in range(0, len(origins), size):
         n = min(size, len(origins) - start)

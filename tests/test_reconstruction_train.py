@@ -266,17 +266,18 @@ def test_warmup_and_decay_set_the_learning_rate_of_every_step_and_resume_on_sche
 
 def test_warmup_and_decay_are_part_of_the_model_key_only_when_used():
     model, loss = TinyDenoiser(), nn.MSELoss()
-    plain = train._training_dir("denoiser", model, loss, "hash", PROFILE)
+    rate = PROFILE.learning_rate
+    plain = train._training_dir("denoiser", model, loss, "hash", PROFILE, rate)
     # old caches stay valid
-    assert train._training_dir("denoiser", model, loss, "hash", PROFILE, 0, PROFILE.learning_rate, "constant") == plain
-    assert train._training_dir("denoiser", model, loss, "hash", PROFILE, 100) != plain
-    assert train._training_dir("denoiser", model, loss, "hash", PROFILE, learning_rate=2e-3) != plain
-    cosine = train._training_dir("denoiser", model, loss, "hash", PROFILE, decay="cosine")
+    assert train._training_dir("denoiser", model, loss, "hash", PROFILE, rate, 0, "constant") == plain
+    assert train._training_dir("denoiser", model, loss, "hash", PROFILE, rate, 100) != plain
+    assert train._training_dir("denoiser", model, loss, "hash", PROFILE, 2e-3) != plain
+    cosine = train._training_dir("denoiser", model, loss, "hash", PROFILE, rate, decay="cosine")
     assert cosine != plain
     # with a decay the epoch count shapes the schedule: more epochs is another model, not a resume
     longer = dataclasses.replace(PROFILE, epochs=PROFILE.epochs + 1)
-    assert train._training_dir("denoiser", model, loss, "hash", longer, decay="cosine") != cosine
-    assert train._training_dir("denoiser", model, loss, "hash", longer) == plain
+    assert train._training_dir("denoiser", model, loss, "hash", longer, rate, decay="cosine") != cosine
+    assert train._training_dir("denoiser", model, loss, "hash", longer, rate) == plain
 
 
 def test_profiles_warm_up_only_the_standard_normal_depth_variant():
