@@ -28,7 +28,6 @@ from kdtrace._kdtree_traverse import (
     clip_to_box,
     decode_node,
     intersect_triangle,
-    intersect_triangle_watertight,
     ray_shear,
     trace_ray,
 )
@@ -45,7 +44,7 @@ _TRI, _VISITED, _TESTS, _KX, _KY, _KZ = range(6)
 PACKET_BEST, PACKET_U, PACKET_V, PACKET_TRI = _BEST, _U, _V, _TRI
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def packet_scratch(size):
     """Per-thread buffers of :func:`trace_packet` for packets of up to ``size`` rays.
 
@@ -54,26 +53,81 @@ def packet_scratch(size):
     (6, size) int64 (rows named by this module's ``_ORIGIN`` .. ``_KZ``), the stack:
     (node, rays entering unchecked, rays whose entry is checked) and the pushed intervals,
     and a bool per lane (the triangle test's hits).
+
+    Inlined, so that the caller's LLVM function sees the allocations and knows the buffers
+    do not alias: called as a separate function, its returned arrays might, and the
+    triangle test's lane loop (which writes the hit flags beside the closest hits) was not
+    vectorised. That made camera packets no faster than single rays (0.82x on
+    cbox-original's camera rays, 2 threads, 2026-12-05) until this was inlined again.
     """
     return (np.empty((4, 3, size)), np.empty((10, size)), np.empty((6, size), np.int64),
             np.empty((STACK_SIZE, 3), np.int64), np.empty((STACK_SIZE, 2, size)), np.empty(size, np.bool_))
 
 
 @njit(cache=True, inline="always")
-def _lane_mask(flags, n):
-    """Bit mask of the true entries of ``flags[:n]``."""
+def _lane_mask(flags):
+    """Bit mask of the true entries of ``flags``."""
     mask = 0
-    for r in range(n):
+    for r in range(PACKET_SIZE):
         mask |= np.int64(flags[r]) << r
     return mask
+
+
+@njit(cache=True, inline="always")
+def _load_lanes(box, origins, directions, n, watertight, lanes3, lanes, lane_ints):
+    """Fill the lane state of rays ``0 .. n-1``, each over ``(0, lanes[_BEST, r])``.
+
+    The caller has put each ray's tmax in ``lanes[_BEST]`` (lanes past ``n`` copy ray 0
+    and stay inactive). Returns ``(active, along_x, along_y, along_z)``: the mask of rays
+    that meet the scene box, and for each axis the mask of the lanes whose watertight
+    shear is along it.
+    """
+    origin = lanes3[_ORIGIN]
+    direction = lanes3[_DIRECTION]
+    inverse = lanes3[_INVERSE]
+    active = 0
+    along_x = 0
+    along_y = 0
+    along_z = 0
+    for r in range(PACKET_SIZE):
+        q = r if r < n else 0
+        ox, oy, oz = origins[q, 0], origins[q, 1], origins[q, 2]
+        dx, dy, dz = directions[q, 0], directions[q, 1], directions[q, 2]
+        ent, ext = clip_to_box(box, ox, oy, oz, dx, dy, dz, 0.0, lanes[_BEST, q])
+        origin[0, r], origin[1, r], origin[2, r] = ox, oy, oz
+        direction[0, r], direction[1, r], direction[2, r] = dx, dy, dz
+        inverse[0, r] = 1.0 / dx if dx != 0.0 else np.inf
+        inverse[1, r] = 1.0 / dy if dy != 0.0 else np.inf
+        inverse[2, r] = 1.0 / dz if dz != 0.0 else np.inf
+        lanes[_ENT, r] = ent
+        lanes[_EXT, r] = ext
+        lanes[_BEST, r] = lanes[_BEST, q]
+        lanes[_U, r] = 0.0
+        lanes[_V, r] = 0.0
+        lane_ints[_TRI, r] = -1
+        lane_ints[_VISITED, r] = 0
+        lane_ints[_TESTS, r] = 0
+        if watertight:
+            kx, ky, kz, sx, sy, sz = ray_shear(dx, dy, dz)
+            lane_ints[_KX, r], lane_ints[_KY, r], lane_ints[_KZ, r] = kx, ky, kz
+            lanes3[_PERMUTED, 0, r] = origin[kx, r]
+            lanes3[_PERMUTED, 1, r] = origin[ky, r]
+            lanes3[_PERMUTED, 2, r] = origin[kz, r]
+            lanes[_SHEAR_X, r], lanes[_SHEAR_Y, r], lanes[_SHEAR_Z, r] = sx, sy, sz
+            along_x |= np.int64(kz == 0) << r
+            along_y |= np.int64(kz == 1) << r
+            along_z |= np.int64(kz == 2) << r
+        if ent <= ext and r < n:
+            active |= 1 << r
+    return active, along_x, along_y, along_z
 
 
 @njit(cache=True, inline="always")
 def _test_triangle_uniform(tri, corners, kx, ky, kz, n, active, lanes3, lanes, lane_ints, hit):
     """:func:`kdtrace._kdtree_traverse.intersect_triangle_watertight` for every lane at once.
 
-    All lanes share the shear's axes ``kx, ky, kz``, so the corners are read once and the
-    lane loop is branch-free (selects, no early outs); each lane's arithmetic is the
+    The lanes in ``active`` share the shear's axes ``kx, ky, kz``, so the corners are read
+    once and the lane loop is branch-free (selects, no early outs); each lane's arithmetic is the
     scalar test's, operation for operation, so its result is the same bit for bit.
     """
     ok = lanes3[_PERMUTED]
@@ -133,6 +187,92 @@ def _test_triangle_uniform(tri, corners, kx, ky, kz, n, active, lanes3, lanes, l
 
 
 @njit(cache=True, inline="always")
+def _test_triangle(tri, corners, watertight, along, active, lanes3, lanes, lane_ints, hit):
+    """Test triangle ``tri`` against the active lanes; returns the mask of lanes it is the new closest hit of.
+
+    Watertight: branch-free over the lanes (:func:`_test_triangle_uniform`), once per
+    shear axis the active lanes use (a camera packet's rays mostly share one).
+    Möller–Trumbore: lane by lane with the scalar test.
+    """
+    hits = 0
+    if watertight:
+        along_x, along_y, along_z = along
+        if active & along_x:
+            _test_triangle_uniform(tri, corners, 1, 2, 0, PACKET_SIZE, active & along_x, lanes3, lanes, lane_ints, hit)
+            hits |= _lane_mask(hit)
+        if active & along_y:
+            _test_triangle_uniform(tri, corners, 2, 0, 1, PACKET_SIZE, active & along_y, lanes3, lanes, lane_ints, hit)
+            hits |= _lane_mask(hit)
+        if active & along_z:
+            _test_triangle_uniform(tri, corners, 0, 1, 2, PACKET_SIZE, active & along_z, lanes3, lanes, lane_ints, hit)
+            hits |= _lane_mask(hit)
+        return hits
+    for r in range(PACKET_SIZE):
+        if not (active >> r) & 1:
+            continue
+        lane_ints[_TESTS, r] += 1
+        t, u, v = intersect_triangle(tri, corners, lanes3[_ORIGIN, 0, r], lanes3[_ORIGIN, 1, r],
+                                     lanes3[_ORIGIN, 2, r], lanes3[_DIRECTION, 0, r], lanes3[_DIRECTION, 1, r],
+                                     lanes3[_DIRECTION, 2, r], 0.0, lanes[_BEST, r])
+        if t < lanes[_BEST, r]:
+            hits |= 1 << r
+            lanes[_BEST, r] = t
+            lanes[_U, r] = u
+            lanes[_V, r] = v
+            lane_ints[_TRI, r] = tri
+    return hits
+
+
+@njit(cache=True, inline="always")
+def _split_lanes(split, axis, active, lanes3, lanes):
+    """Every active lane's decision at a split, branch-free: the scalar walk's cases in its order.
+
+    Lying in the plane: both children over the same interval; parallel to it or starting
+    on it: near only; the plane outside the interval or past the closest hit: near only;
+    before the entry: far only; else both, split at the plane. Leaves each lane's near
+    interval in ``lanes[_ENT]``, ``lanes[_EXT]`` and its far one in ``lanes[_FAR_ENT]``,
+    ``lanes[_FAR_EXT]``; returns the lane masks ``(left_near, go_near, go_far,
+    far_checked)``, the last of the lanes whose far entry must still be checked against
+    their closest hit when it is popped.
+    """
+    o_row = lanes3[_ORIGIN, axis]
+    d_row = lanes3[_DIRECTION, axis]
+    i_row = lanes3[_INVERSE, axis]
+    ent_l = lanes[_ENT]
+    ext_l = lanes[_EXT]
+    best = lanes[_BEST]
+    far_ent = lanes[_FAR_ENT]
+    far_ext = lanes[_FAR_EXT]
+    left_near = 0
+    go_near = 0
+    go_far = 0
+    far_checked = 0
+    for r in range(PACKET_SIZE):
+        o_axis = o_row[r]
+        d_axis = d_row[r]
+        ent = ent_l[r]
+        ext = ext_l[r]
+        t_plane = (split - o_axis) * i_row[r]
+        on_plane = o_axis == split
+        parallel = d_axis == 0.0
+        lying = parallel & on_plane
+        one_child = parallel | on_plane
+        near_only = (not one_child) & ((t_plane > ext * INTERVAL_PAD) | (t_plane <= 0.0) | (t_plane > best[r]))
+        decided = one_child | near_only
+        far_only = (not decided) & (t_plane * INTERVAL_PAD < ent)
+        both = (not decided) & (not far_only)
+        on = np.int64((active >> r) & 1)
+        left_near |= (np.int64((o_axis < split) | (on_plane & (d_axis <= 0.0))) & on) << r
+        go_near |= (np.int64(not far_only) & on) << r
+        go_far |= (np.int64(lying | far_only | both) & on) << r
+        far_checked |= (np.int64(lying | both) & on) << r
+        far_ent[r] = t_plane if both else ent
+        far_ext[r] = ext
+        ext_l[r] = t_plane if both else ext
+    return left_near, go_near, go_far, far_checked
+
+
+@njit(cache=True, inline="always")
 def trace_packet(nodes, splits, refs, box, corners, origins, directions, n, tmax, watertight, scratch):
     """Closest hits of rays ``0 .. n-1`` (n <= :data:`PACKET_SIZE`) over ``(0, tmax)``.
 
@@ -151,45 +291,16 @@ def trace_packet(nodes, splits, refs, box, corners, origins, directions, n, tmax
     when two active rays disagree on a split's near child.
     """
     lanes3, lanes, lane_ints, st_head, st_span, flags = scratch
-    origin = lanes3[_ORIGIN]
-    direction = lanes3[_DIRECTION]
-    inverse = lanes3[_INVERSE]
     ent_l = lanes[_ENT]
     ext_l = lanes[_EXT]
     best = lanes[_BEST]
     far_ent = lanes[_FAR_ENT]
     far_ext = lanes[_FAR_EXT]
     visited = lane_ints[_VISITED]
-    active = 0
-    uniform_axes = True
     for r in range(PACKET_SIZE):
-        q = r if r < n else 0
-        ox, oy, oz = origins[q, 0], origins[q, 1], origins[q, 2]
-        dx, dy, dz = directions[q, 0], directions[q, 1], directions[q, 2]
-        ent, ext = clip_to_box(box, ox, oy, oz, dx, dy, dz, 0.0, tmax)
-        origin[0, r], origin[1, r], origin[2, r] = ox, oy, oz
-        direction[0, r], direction[1, r], direction[2, r] = dx, dy, dz
-        inverse[0, r] = 1.0 / dx if dx != 0.0 else np.inf
-        inverse[1, r] = 1.0 / dy if dy != 0.0 else np.inf
-        inverse[2, r] = 1.0 / dz if dz != 0.0 else np.inf
-        ent_l[r] = ent
-        ext_l[r] = ext
         best[r] = tmax
-        lanes[_U, r] = 0.0
-        lanes[_V, r] = 0.0
-        lane_ints[_TRI, r] = -1
-        visited[r] = 0
-        lane_ints[_TESTS, r] = 0
-        if watertight:
-            kx, ky, kz, sx, sy, sz = ray_shear(dx, dy, dz)
-            lane_ints[_KX, r], lane_ints[_KY, r], lane_ints[_KZ, r] = kx, ky, kz
-            lanes3[_PERMUTED, 0, r] = origin[kx, r]
-            lanes3[_PERMUTED, 1, r] = origin[ky, r]
-            lanes3[_PERMUTED, 2, r] = origin[kz, r]
-            lanes[_SHEAR_X, r], lanes[_SHEAR_Y, r], lanes[_SHEAR_Z, r] = sx, sy, sz
-            uniform_axes = uniform_axes and kz == lane_ints[_KZ, 0]
-        if ent <= ext and r < n:
-            active |= 1 << r
+    active, along_x, along_y, along_z = _load_lanes(box, origins, directions, n, watertight, lanes3, lanes, lane_ints)
+    along = (along_x, along_y, along_z)
     spans = np.uint64(nodes.shape[0] >> 2)
     node = np.uint64(0)
     sp = 0
@@ -199,64 +310,11 @@ def trace_packet(nodes, splits, refs, box, corners, origins, directions, n, tmax
             visited[r] += (active >> r) & 1
         # Triangle-major: one triangle's corners are read once for every active ray.
         for k in range(first, first + count):
-            tri = refs[np.uint64(k)]
-            if watertight and uniform_axes:
-                _test_triangle_uniform(tri, corners, lane_ints[_KX, 0], lane_ints[_KY, 0], lane_ints[_KZ, 0],
-                                       PACKET_SIZE, active, lanes3, lanes, lane_ints, flags)
-                continue
-            for r in range(PACKET_SIZE):
-                if not (active >> r) & 1:
-                    continue
-                lane_ints[_TESTS, r] += 1
-                if watertight:
-                    t, u, v = intersect_triangle_watertight(
-                        tri, corners, lanes3[_PERMUTED, 0, r], lanes3[_PERMUTED, 1, r], lanes3[_PERMUTED, 2, r],
-                        lane_ints[_KX, r], lane_ints[_KY, r], lane_ints[_KZ, r],
-                        lanes[_SHEAR_X, r], lanes[_SHEAR_Y, r], lanes[_SHEAR_Z, r], 0.0, best[r])
-                else:
-                    t, u, v = intersect_triangle(tri, corners, origin[0, r], origin[1, r], origin[2, r],
-                                                 direction[0, r], direction[1, r], direction[2, r], 0.0, best[r])
-                if t < best[r]:
-                    best[r] = t
-                    lanes[_U, r] = u
-                    lanes[_V, r] = v
-                    lane_ints[_TRI, r] = tri
+            _test_triangle(refs[np.uint64(k)], corners, watertight, along, active, lanes3, lanes, lane_ints, flags)
         if axis != LEAF:
             left = np.uint64(word >> 3)
             split = np.float64(splits[np.uint64(2) * node + np.uint64(1)])
-            o_row = origin[axis]
-            d_row = direction[axis]
-            i_row = inverse[axis]
-            # Every lane's decision, branch-free: the scalar walk's cases in its order
-            # (lying in the plane: both children over the same interval; parallel to it or
-            # starting on it: near only; the plane outside the interval or past the closest
-            # hit: near only; before the entry: far only; else both, split at the plane).
-            left_near = 0
-            go_near = 0
-            go_far = 0
-            far_checked = 0
-            for r in range(PACKET_SIZE):
-                o_axis = o_row[r]
-                d_axis = d_row[r]
-                ent = ent_l[r]
-                ext = ext_l[r]
-                t_plane = (split - o_axis) * i_row[r]
-                on_plane = o_axis == split
-                parallel = d_axis == 0.0
-                lying = parallel & on_plane
-                one_child = parallel | on_plane
-                near_only = (not one_child) & ((t_plane > ext * INTERVAL_PAD) | (t_plane <= 0.0) | (t_plane > best[r]))
-                decided = one_child | near_only
-                far_only = (not decided) & (t_plane * INTERVAL_PAD < ent)
-                both = (not decided) & (not far_only)
-                on = np.int64((active >> r) & 1)
-                left_near |= (np.int64((o_axis < split) | (on_plane & (d_axis <= 0.0))) & on) << r
-                go_near |= (np.int64(not far_only) & on) << r
-                go_far |= (np.int64(lying | far_only | both) & on) << r
-                far_checked |= (np.int64(lying | both) & on) << r
-                far_ent[r] = t_plane if both else ent
-                far_ext[r] = ext
-                ext_l[r] = t_plane if both else ext
+            left_near, go_near, go_far, far_checked = _split_lanes(split, axis, active, lanes3, lanes)
             if left_near != 0 and left_near != active:
                 return False
             near = left if left_near != 0 else left + np.uint64(1)
@@ -359,4 +417,5 @@ def trace_batch_packets(
                 out_v[i] = v
                 out_visited[i] = visited
                 out_tests[i] = tests
+
 
