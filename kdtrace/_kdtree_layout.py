@@ -24,10 +24,14 @@ bunny 2,246 -> 1,957 ns per ray; with two threads the gain is within the run-to-
 
 from __future__ import annotations
 
+import sys
+
 import numpy as np
 from numba import njit
 
+from kdtrace import _kdtree_build
 from kdtrace._kdtree_build import LEAF
+from kdtrace.cache import drop_stale_kernel_cache
 
 #: Nodes per 64-byte cache line at 8 bytes per node.
 LINE_NODES = 8
@@ -111,3 +115,7 @@ def pack_nodes(node_meta, split_bits, node_start, node_count, new_index, n_slots
             packed[n_slots + slot, 0] = node_start[node]
             packed[n_slots + slot, 1] = node_count[node]
     return packed
+
+
+# numba's cache checks this file only; recompile when a module inlined from here changes.
+drop_stale_kernel_cache(sys.modules[__name__], _kdtree_build)

@@ -10,11 +10,15 @@ Any-hit (shadow) queries walk their segment from its end instead (see :func:`tra
 
 from __future__ import annotations
 
+import sys
+
 import numpy as np
 from numba import njit, prange
 
+from kdtrace import _kdtree_build, _kdtree_layout
 from kdtrace._kdtree_build import LEAF
 from kdtrace._kdtree_layout import HAS_TRIANGLES
+from kdtrace.cache import drop_stale_kernel_cache
 
 STACK_SIZE = 96
 #: Length of a traversal's per-ray scratch buffer (origin, direction, 1 / direction).
@@ -363,3 +367,7 @@ def trace_batch(
             out_v[i] = v
             out_visited[i] = visited
             out_tests[i] = tests
+
+
+# numba's cache checks this file only; recompile when a module inlined from here changes.
+drop_stale_kernel_cache(sys.modules[__name__], _kdtree_build, _kdtree_layout)

@@ -17,9 +17,12 @@ caller traces the packet's rays one by one.
 
 from __future__ import annotations
 
+import sys
+
 import numpy as np
 from numba import njit, prange
 
+from kdtrace import _kdtree_build, _kdtree_layout, _kdtree_traverse
 from kdtrace._kdtree_build import LEAF
 from kdtrace._kdtree_traverse import (
     INTERVAL_PAD,
@@ -31,6 +34,7 @@ from kdtrace._kdtree_traverse import (
     ray_shear,
     trace_ray,
 )
+from kdtrace.cache import drop_stale_kernel_cache
 
 #: Most rays in one packet (bits of an int64 mask; 16 = two pixels at 8 spp).
 PACKET_SIZE = 16
@@ -419,3 +423,5 @@ def trace_batch_packets(
                 out_tests[i] = tests
 
 
+# numba's cache checks this file only; recompile when a module inlined from here changes.
+drop_stale_kernel_cache(sys.modules[__name__], _kdtree_build, _kdtree_layout, _kdtree_traverse)

@@ -30,12 +30,15 @@ light point (2), dielectric lobe, BSDF direction (2), Russian roulette.
 from __future__ import annotations
 
 import math
+import sys
 
 import numpy as np
 from numba import literally, njit, prange
 
+from kdtrace import _kdtree_build, _kdtree_layout, _kdtree_traverse, _packet_traverse
 from kdtrace._kdtree_traverse import RAY_SCRATCH, STACK_SIZE, trace_ray
 from kdtrace._packet_traverse import PACKET_BEST, PACKET_SIZE, PACKET_TRI, PACKET_U, PACKET_V, packet_scratch, trace_packet
+from kdtrace.cache import drop_stale_kernel_cache
 
 KIND_DIFFUSE = 0
 KIND_MIRROR = 1
@@ -596,3 +599,7 @@ def render_tiles(
             width, height, spp, max_depth, rr_depth, seed, first_sample, tile_size, (k * tile_stride) % tiles, tiles_x,
             camera_packets, out_rgb, out_var, out_albedo, out_normal, out_depth, counts,
         )
+
+
+# numba's cache checks this file only; recompile when a module inlined from here changes.
+drop_stale_kernel_cache(sys.modules[__name__], _kdtree_build, _kdtree_layout, _kdtree_traverse, _packet_traverse)

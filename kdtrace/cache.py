@@ -49,6 +49,41 @@ def source_fingerprint(*modules: ModuleType) -> str:
     return digest.hexdigest()
 
 
+def drop_stale_kernel_cache(kernels: ModuleType, *inlined_from: ModuleType) -> bool:
+    """Delete numba's cached machine code of ``kernels`` if a module it inlines from has changed.
+
+    numba decides whether a cached function is stale by its own source file only, so a
+    kernel keeps running the old code of an edited function it inlines from another
+    module (measured: renders timed after an edit of the packet traversal ran the code
+    before it, 2026-12-05). Each kernel module therefore keeps a stamp, the
+    :func:`source_fingerprint` of itself and ``inlined_from``, beside numba's cache files;
+    when it differs, the module's cache files are deleted and numba compiles afresh. Call
+    it before any kernel of the module runs. Returns True when it deleted the cache.
+    """
+    dispatcher = next((value for value in vars(kernels).values()
+                       if getattr(getattr(value, "py_func", None), "__module__", None) == kernels.__name__
+                       and hasattr(getattr(value, "_cache", None), "_cache_path")), None)
+    if dispatcher is None:  # no cached kernel (or a numba without the attribute): nothing to guard
+        return False
+    folder = Path(dispatcher._cache._cache_path)
+    name = kernels.__name__.rsplit(".", 1)[-1]
+    stamp = folder / f"{name}.sources"
+    fingerprint = source_fingerprint(kernels, *inlined_from)
+    try:
+        if stamp.read_text() == fingerprint:
+            return False
+    except OSError:
+        pass
+    stale = [path for path in folder.glob(f"{name}.*") if path.suffix in (".nbi", ".nbc")]
+    for path in stale:
+        path.unlink(missing_ok=True)
+    try:
+        atomic_write_bytes(stamp, fingerprint.encode())
+    except OSError:  # a read-only install: numba cannot cache there either
+        pass
+    return bool(stale)
+
+
 def atomic_write(path: str | Path, write: Callable[[str], None]) -> Path:
     """Call ``write(temporary_path)`` beside ``path`` (same suffix), then rename it into place.
 

@@ -1,6 +1,7 @@
 """The content-addressed cache's keys and atomic writes."""
 
 import importlib.util
+import subprocess
 import sys
 
 import pytest
@@ -51,3 +52,35 @@ def test_atomic_write_leaves_the_old_file_on_failure(tmp_path):
         atomic_write(target, failing)
     assert target.read_bytes() == b"old"
     assert [p.name for p in tmp_path.iterdir()] == ["result.json"]
+
+
+KERNEL = '''
+import sys
+from numba import njit
+import dep
+from kdtrace.cache import drop_stale_kernel_cache
+
+@njit(cache=True)
+def kernel():
+    return dep.value() + 0
+
+if GUARD:
+    drop_stale_kernel_cache(sys.modules[__name__], dep)
+'''
+
+
+def _run_kernel(folder) -> int:
+    code = f"import sys; sys.path.insert(0, {str(folder)!r}); import kern; print(kern.kernel())"
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, timeout=120)
+    return int(done.stdout.split()[-1])
+
+
+@pytest.mark.parametrize("guard", [False, True])
+def test_kernel_cache_follows_the_modules_it_inlines_from(tmp_path, guard):
+    (tmp_path / "kern.py").write_text(KERNEL.replace("GUARD", str(guard)))
+    (tmp_path / "dep.py").write_text("from numba import njit\n\n@njit(inline='always')\ndef value():\n    return 1\n")
+    assert _run_kernel(tmp_path) == 1
+    (tmp_path / "dep.py").write_text("from numba import njit\n\n@njit(inline='always')\ndef value():\n    return 2\n")
+    # numba alone keeps the cached machine code of the unchanged kern.py (the hazard the guard removes).
+    assert _run_kernel(tmp_path) == (2 if guard else 1)
+    assert _run_kernel(tmp_path) == (2 if guard else 1)
