@@ -23,6 +23,7 @@ import numpy as np
 from kdtrace import _kdtree_build as build_kernels
 from kdtrace import _kdtree_layout as layout_kernels
 from kdtrace import _kdtree_traverse as traverse_kernels
+from kdtrace import _packet_traverse as packet_kernels
 from kdtrace.cache import cache_root, content_key, load_npz, save_npz
 from kdtrace.config import DEFAULT_CONFIG, KDTreeConfig
 from kdtrace.scene import Scene
@@ -89,7 +90,7 @@ class KDTree:
     def __repr__(self) -> str:
         return f"KDTree(variant={self.variant!r}, nodes={self.stats['nodes']}, references={self.stats['triangle_references']})"
 
-    def _trace(self, origins, directions, tmin, tmax, any_hit):
+    def _trace(self, origins, directions, tmin, tmax, any_hit, packets=False):
         origins, directions, tmin, tmax = validate_rays(origins, directions, tmin, tmax)
         n = len(origins)
         out_t = np.empty(n)
@@ -100,14 +101,21 @@ class KDTree:
         tests = np.empty(n, np.int32)
         # Several chunks per thread balance the load; a chunk owns one traversal stack.
         n_chunks = max(1, min(n, 16 * numba.get_num_threads()))
-        traverse_kernels.trace_batch(
-            self.node_words, self.node_splits, self.refs, self.box, self.corners, origins, directions, tmin, tmax,
-            any_hit, self.watertight, n_chunks, out_t, out_tri, out_u, out_v, visited, tests,
-        )
+        outputs = (out_t, out_tri, out_u, out_v, visited, tests)
+        if packets:
+            if np.any(tmin != 0.0):
+                raise ValueError("packets trace rays from their origins: tmin must be 0")
+            packet_kernels.trace_batch_packets(
+                self.node_words, self.node_splits, self.refs, self.box, self.corners, origins, directions, tmax,
+                self.watertight, packet_kernels.PACKET_SIZE, n_chunks, *outputs)
+        else:
+            traverse_kernels.trace_batch(
+                self.node_words, self.node_splits, self.refs, self.box, self.corners, origins, directions, tmin, tmax,
+                any_hit, self.watertight, n_chunks, *outputs)
         self.last_counters = TraceCounters(visited, tests)
         return out_t, out_tri, out_u, out_v
 
-    def intersect(self, origins, directions, tmin=0.0, tmax=np.inf):
+    def intersect(self, origins, directions, tmin=0.0, tmax=np.inf, packets=False):
         """Closest hit of every ray ``o + t d`` with ``tmin < t < tmax``.
 
         Parameters
@@ -116,6 +124,10 @@ class KDTree:
             Ray origins and directions (scene units; directions need not be unit).
         tmin, tmax : float or (N,) array
             Accepted range of the ray parameter t.
+        packets : bool
+            Trace consecutive rays in packets of :data:`kdtrace._packet_traverse.PACKET_SIZE`
+            (as the path tracer traces its camera rays; tmin must be 0): faster for coherent
+            rays such as a camera's, with the same results and counters.
 
         Returns
         -------
@@ -123,7 +135,7 @@ class KDTree:
         tri : (N,) int32, index into ``scene.triangles``, -1 on a miss
         u, v : (N,) float64, barycentric weights of vertices 1 and 2
         """
-        return self._trace(origins, directions, tmin, tmax, False)
+        return self._trace(origins, directions, tmin, tmax, False, packets)
 
     def occluded(self, origins, directions, tmax, tmin=0.0):
         """True for rays that hit anything with ``tmin < t < tmax`` (shadow rays).

@@ -56,7 +56,7 @@ from reports.notes import ReportNote
 from reports.paper_figures import TABLE1
 
 #: Version of the row layout; rows measured with another version are measured again.
-ROW_VERSION = 6
+ROW_VERSION = 7
 #: Timed rounds per ray set (each times every intersector once; medians), after one warm-up call.
 TIMING_ROUNDS = 7
 #: Frame renders per tree, in alternating order (naive-local, local-naive, ...): even, so
@@ -102,6 +102,20 @@ def interleaved_seconds(intersectors: dict, origins: np.ndarray, directions: np.
             query(intersectors[name], len(origins))
             seconds[name].append(time.perf_counter() - started)
     return seconds
+
+
+class CameraPackets:
+    """A tree that traces rays as the path tracer traces its camera rays: 16 consecutive rays a packet."""
+
+    def __init__(self, tree):
+        self.tree = tree
+
+    def intersect(self, origins, directions):
+        return self.tree.intersect(origins, directions, packets=True)
+
+    @property
+    def last_counters(self):
+        return self.tree.last_counters
 
 
 def paired_speedup(slow: list[float], fast: list[float]) -> float:
@@ -189,7 +203,9 @@ def scene_row(name: str, config: Config, profile_name: str, progress: tqdm) -> d
     ray_sets = timing_ray_sets(scene, profile)
     for kind, (origins, directions) in ray_sets.items():
         progress.set_postfix_str(f"{name}: timing {kind} rays")
-        seconds = interleaved_seconds({**trees, "embree": embree}, origins, directions)
+        # Camera rays in packets, as the path tracer traces them (same hits and counters).
+        traced = {variant: CameraPackets(tree) for variant, tree in trees.items()} if kind == "primary" else trees
+        seconds = interleaved_seconds({**traced, "embree": embree}, origins, directions)
         for label, timings in seconds.items():
             row[f"{kind}_mrays_{label}"] = len(origins) / statistics.median(timings) / 1e6
         for variant, tree in trees.items():  # the work behind the speed, from the last timed call
@@ -629,7 +645,8 @@ def write_outputs(table: pd.DataFrame, config: Config, profile_name: str, out_di
         f"# Table 1 — KD-tree size and speed ({profile_name} profile)\n\n"
         f"Machine: {host['cpu']}, {host['cores']} cores, {host['numba_threads']} numba threads (Embree gets as "
         f"many threads); {host['date']}. Primary rays: one {profile.frame_width}x{profile.frame_height} frame at "
-        f"{profile.frame_spp} spp (ray casting only, no shading); incoherent rays: {profile.timing_rays:,} random "
+        f"{profile.frame_spp} spp (ray casting only, no shading; our trees trace them as the path tracer traces its "
+        f"camera rays, in packets of 16 consecutive rays of a row); incoherent rays: {profile.timing_rays:,} random "
         f"rays; shadow rays: {profile.timing_rays:,} any-hit rays from surface points to points on the lights; "
         f"Mrays/s are medians of {TIMING_ROUNDS} rounds after a warm-up, the three intersectors taking turns in each "
         f"round; local/Embree is the median of the per-round ratios. Frame seconds: the path tracer "

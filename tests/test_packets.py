@@ -155,6 +155,16 @@ def test_camera_ray_packets_on_real_scenes(name):
         # Not vacuous: the packets do run (they fall back only on a split plane through the camera).
         assert packet_runs(tree, origins, directions) == -(-len(origins) // packet_kernels.PACKET_SIZE)
         assert (scalar[1] >= 0).mean() > 0.5
+        # The public entry point (Table 1's primary rays): the same hits and counters.
+        hits = tree.intersect(origins, directions)
+        counters = tree.last_counters
+        packet_hits = tree.intersect(origins, directions, packets=True)
+        for a, b in zip(hits, packet_hits, strict=True):
+            np.testing.assert_array_equal(a, b)
+        np.testing.assert_array_equal(counters.nodes_visited, tree.last_counters.nodes_visited)
+        np.testing.assert_array_equal(counters.triangle_tests, tree.last_counters.triangle_tests)
+        with pytest.raises(ValueError, match="tmin must be 0"):
+            tree.intersect(origins, directions, tmin=1e-3, packets=True)
 
 
 @pytest.mark.parametrize(("name", "sky"), [("cbox-original", False), ("cbox-sphere", False), ("car", True)])
