@@ -15,9 +15,10 @@ import sys
 import numpy as np
 from numba import njit, prange
 
-from kdtrace import _kdtree_build, _kdtree_layout
+from kdtrace import _kdtree_build, _kdtree_layout, _stack
 from kdtrace._kdtree_build import LEAF
 from kdtrace._kdtree_layout import HAS_TRIANGLES
+from kdtrace._stack import stack_empty
 from kdtrace.cache import drop_stale_kernel_cache
 
 STACK_SIZE = 96
@@ -332,42 +333,52 @@ def trace_ray(
     return best_t, best_tri, best_u, best_v, visited, tests
 
 
+@njit(cache=True, _nrt=False)
+def _trace_rays(nodes, splits, refs, box, corners, origins, directions, tmin, tmax, any_hit, watertight, first, end,
+                out_t, out_tri, out_u, out_v, out_visited, out_tests):
+    """Rays ``first .. end - 1`` of :func:`trace_batch` (one parallel chunk).
+
+    :func:`trace_ray` is inlined once with ``any_hit`` a constant True and once False, so
+    closest-hit rays run without the any-hit branches (with ``any_hit`` passed through,
+    they ran 2-8% slower once any-hit traversal differed, 2026-12-02). ``numba.literally``
+    would do the same but dispatched every call anew (about 7 s per call). Compiled
+    without numba's runtime: the traversal stack is in its stack frame and no reference to an
+    array is counted (see :mod:`kdtrace._stack`).
+    """
+    st_node = stack_empty(STACK_SIZE, np.int32)
+    st_ent = stack_empty(STACK_SIZE, np.float64)
+    st_ext = stack_empty(STACK_SIZE, np.float64)
+    ray = stack_empty(RAY_SCRATCH, np.float64)
+    for i in range(first, end):
+        ox, oy, oz = origins[i, 0], origins[i, 1], origins[i, 2]
+        dx, dy, dz = directions[i, 0], directions[i, 1], directions[i, 2]
+        if any_hit:
+            t, tri, u, v, visited, tests = trace_ray(nodes, splits, refs, box, corners, ox, oy, oz, dx, dy, dz,
+                                                     tmin[i], tmax[i], True, watertight, st_node, st_ent, st_ext, ray)
+        else:
+            t, tri, u, v, visited, tests = trace_ray(nodes, splits, refs, box, corners, ox, oy, oz, dx, dy, dz,
+                                                     tmin[i], tmax[i], False, watertight, st_node, st_ent, st_ext, ray)
+        out_t[i] = t
+        out_tri[i] = tri
+        out_u[i] = u
+        out_v[i] = v
+        out_visited[i] = visited
+        out_tests[i] = tests
+
+
 @njit(cache=True, parallel=True)
 def trace_batch(
     nodes, splits, refs, box, corners,
     origins, directions, tmin, tmax, any_hit, watertight, n_chunks,
     out_t, out_tri, out_u, out_v, out_visited, out_tests,
 ):
-    """Trace every ray, in parallel over chunks of rays (one stack per chunk).
-
-    :func:`trace_ray` is inlined once with ``any_hit`` a constant True and once False, so
-    closest-hit rays run without the any-hit branches (with ``any_hit`` passed through,
-    they ran 2-8% slower once any-hit traversal differed, 2026-12-02). ``numba.literally``
-    would do the same but dispatched every call anew (about 7 s per call).
-    """
+    """Trace every ray, in parallel over chunks of rays (one stack per chunk, :func:`_trace_rays`)."""
     n = origins.shape[0]
     chunk = (n + n_chunks - 1) // n_chunks
     for c in prange(n_chunks):
-        st_node = np.empty(STACK_SIZE, np.int32)
-        st_ent = np.empty(STACK_SIZE, np.float64)
-        st_ext = np.empty(STACK_SIZE, np.float64)
-        ray = np.empty(RAY_SCRATCH)
-        for i in range(c * chunk, min(n, (c + 1) * chunk)):
-            ox, oy, oz = origins[i, 0], origins[i, 1], origins[i, 2]
-            dx, dy, dz = directions[i, 0], directions[i, 1], directions[i, 2]
-            if any_hit:
-                t, tri, u, v, visited, tests = trace_ray(nodes, splits, refs, box, corners, ox, oy, oz, dx, dy, dz,
-                                                         tmin[i], tmax[i], True, watertight, st_node, st_ent, st_ext, ray)
-            else:
-                t, tri, u, v, visited, tests = trace_ray(nodes, splits, refs, box, corners, ox, oy, oz, dx, dy, dz,
-                                                         tmin[i], tmax[i], False, watertight, st_node, st_ent, st_ext, ray)
-            out_t[i] = t
-            out_tri[i] = tri
-            out_u[i] = u
-            out_v[i] = v
-            out_visited[i] = visited
-            out_tests[i] = tests
+        _trace_rays(nodes, splits, refs, box, corners, origins, directions, tmin, tmax, any_hit, watertight,
+                    c * chunk, min(n, (c + 1) * chunk), out_t, out_tri, out_u, out_v, out_visited, out_tests)
 
 
 # numba's cache checks this file only; recompile when a module inlined from here changes.
-drop_stale_kernel_cache(sys.modules[__name__], _kdtree_build, _kdtree_layout)
+drop_stale_kernel_cache(sys.modules[__name__], _kdtree_build, _kdtree_layout, _stack)

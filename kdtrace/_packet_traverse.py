@@ -22,7 +22,7 @@ import sys
 import numpy as np
 from numba import njit, prange
 
-from kdtrace import _kdtree_build, _kdtree_layout, _kdtree_traverse
+from kdtrace import _kdtree_build, _kdtree_layout, _kdtree_traverse, _stack
 from kdtrace._kdtree_build import LEAF
 from kdtrace._kdtree_traverse import (
     INTERVAL_PAD,
@@ -34,6 +34,7 @@ from kdtrace._kdtree_traverse import (
     ray_shear,
     trace_ray,
 )
+from kdtrace._stack import stack_empty
 from kdtrace.cache import drop_stale_kernel_cache
 
 #: Most rays in one packet (bits of an int64 mask; 16 = two pixels at 8 spp).
@@ -49,23 +50,24 @@ PACKET_BEST, PACKET_U, PACKET_V, PACKET_TRI = _BEST, _U, _V, _TRI
 
 
 @njit(cache=True, inline="always")
-def packet_scratch(size):
-    """Per-thread buffers of :func:`trace_packet` for packets of up to ``size`` rays.
+def packet_scratch():
+    """Per-thread buffers of :func:`trace_packet`, on the stack of the function it is inlined into.
 
     Lane state as a structure of arrays, so that a loop over the lanes reads contiguous
-    rows: ``lanes3`` (4, 3, size) float64, ``lanes`` (10, size) float64, ``lane_ints``
-    (6, size) int64 (rows named by this module's ``_ORIGIN`` .. ``_KZ``), the stack:
-    (node, rays entering unchecked, rays whose entry is checked) and the pushed intervals,
-    and a bool per lane (the triangle test's hits).
+    rows: ``lanes3`` (4, 3, :data:`PACKET_SIZE`) float64, ``lanes`` (10, PACKET_SIZE)
+    float64, ``lane_ints`` (6, PACKET_SIZE) int64 (rows named by this module's ``_ORIGIN``
+    .. ``_KZ``), the stack: (node, rays entering unchecked, rays whose entry is checked) and
+    the pushed intervals, and a bool per lane (the triangle test's hits).
 
-    Inlined, so that the caller's LLVM function sees the allocations and knows the buffers
-    do not alias: called as a separate function, its returned arrays might, and the
-    triangle test's lane loop (which writes the hit flags beside the closest hits) was not
-    vectorised. That made camera packets no faster than single rays (0.82x on
-    cbox-original's camera rays, 2 threads, 2026-12-05) until this was inlined again.
+    Allocated where the caller's LLVM function sees it (:func:`kdtrace._stack.stack_empty`),
+    so LLVM knows the buffers do not alias: from a separate function the returned arrays
+    might, and the triangle test's lane loop (which writes the hit flags beside the closest
+    hits) was not vectorised, which made camera packets no faster than single rays (0.82x on
+    cbox-original's camera rays, 2 threads, 2026-12-05).
     """
-    return (np.empty((4, 3, size)), np.empty((10, size)), np.empty((6, size), np.int64),
-            np.empty((STACK_SIZE, 3), np.int64), np.empty((STACK_SIZE, 2, size)), np.empty(size, np.bool_))
+    return (stack_empty((4, 3, PACKET_SIZE), np.float64), stack_empty((10, PACKET_SIZE), np.float64),
+            stack_empty((6, PACKET_SIZE), np.int64), stack_empty((STACK_SIZE, 3), np.int64),
+            stack_empty((STACK_SIZE, 2, PACKET_SIZE), np.float64), stack_empty(PACKET_SIZE, np.bool_))
 
 
 @njit(cache=True, inline="always")
@@ -280,11 +282,12 @@ def _split_lanes(split, axis, active, lanes3, lanes):
 def trace_packet(nodes, splits, refs, box, corners, origins, directions, n, tmax, watertight, scratch):
     """Closest hits of rays ``0 .. n-1`` (n <= :data:`PACKET_SIZE`) over ``(0, tmax)``.
 
-    Inline it into a function with ``error_model="numpy"`` that allocates ``scratch``
-    itself: the lane loops divide by zero on lanes they then discard (numba's Python
-    error model would check every division, and it ran 1.8x slower), and with the
-    buffers passed in from a caller LLVM must assume they alias (1.8x slower again;
-    Crytek Sponza's camera rays, one thread, 2026-12-04).
+    Inline it into a function with ``error_model="numpy"`` that gets ``scratch`` from
+    :func:`packet_scratch` itself: the lane loops divide by zero on lanes they then
+    discard (numba's Python error model would check every division, and it ran 1.8x
+    slower), and with the buffers passed in from a caller LLVM must assume they alias
+    (1.8x slower again; Crytek Sponza's camera rays, one thread, 2026-12-04). Best in a
+    function compiled with ``_nrt=False`` (see :mod:`kdtrace._stack`).
 
     ``origins`` and ``directions`` are (n, 3) float64; the tree arrays are those of
     :func:`kdtrace._kdtree_traverse.trace_ray`; ``scratch`` comes from :func:`packet_scratch`.
@@ -366,7 +369,57 @@ def trace_packet(nodes, splits, refs, box, corners, origins, directions, n, tmax
     return True
 
 
-@njit(cache=True, parallel=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", _nrt=False)
+def _trace_packets(nodes, splits, refs, box, corners, origins, directions, tmax, watertight, packet_size,
+                   first_packet, end_packet, out_t, out_tri, out_u, out_v, out_visited, out_tests):
+    """Packets ``first_packet .. end_packet - 1`` of :func:`trace_batch_packets` (one parallel chunk).
+
+    Compiled without numba's runtime: its scratch is on its stack and no reference to an
+    array is counted (see :mod:`kdtrace._stack`).
+    """
+    scratch = packet_scratch()
+    lanes = scratch[1]
+    lane_ints = scratch[2]
+    s_node = stack_empty(STACK_SIZE, np.int32)
+    s_ent = stack_empty(STACK_SIZE, np.float64)
+    s_ext = stack_empty(STACK_SIZE, np.float64)
+    ray = stack_empty(RAY_SCRATCH, np.float64)
+    org = stack_empty((PACKET_SIZE, 3), np.float64)
+    dirs = stack_empty((PACKET_SIZE, 3), np.float64)
+    n = origins.shape[0]
+    for p in range(first_packet, end_packet):
+        start = p * packet_size
+        m = min(packet_size, n - start)
+        same_tmax = True
+        for r in range(m):
+            for k in range(3):
+                org[r, k] = origins[start + r, k]
+                dirs[r, k] = directions[start + r, k]
+            same_tmax = same_tmax and tmax[start + r] == tmax[start]
+        if same_tmax and trace_packet(nodes, splits, refs, box, corners, org, dirs, m, tmax[start], watertight,
+                                      scratch):
+            for r in range(m):
+                out_t[start + r] = lanes[_BEST, r]
+                out_tri[start + r] = lane_ints[_TRI, r]
+                out_u[start + r] = lanes[_U, r]
+                out_v[start + r] = lanes[_V, r]
+                out_visited[start + r] = lane_ints[_VISITED, r]
+                out_tests[start + r] = lane_ints[_TESTS, r]
+            continue
+        for r in range(m):
+            i = start + r
+            t, tri, u, v, visited, tests = trace_ray(
+                nodes, splits, refs, box, corners, org[r, 0], org[r, 1], org[r, 2], dirs[r, 0], dirs[r, 1],
+                dirs[r, 2], 0.0, tmax[i], False, watertight, s_node, s_ent, s_ext, ray)
+            out_t[i] = t
+            out_tri[i] = tri
+            out_u[i] = u
+            out_v[i] = v
+            out_visited[i] = visited
+            out_tests[i] = tests
+
+
+@njit(cache=True, parallel=True)
 def trace_batch_packets(
     nodes, splits, refs, box, corners, origins, directions, tmax, watertight, packet_size, n_chunks,
     out_t, out_tri, out_u, out_v, out_visited, out_tests,
@@ -376,52 +429,17 @@ def trace_batch_packets(
     The outputs are those of :func:`kdtrace._kdtree_traverse.trace_batch` with
     ``any_hit=False`` and ``tmin = 0``; a packet whose rays disagree on a near child, or
     whose rays have different ``tmax``, is traced ray by ray by
-    :func:`kdtrace._kdtree_traverse.trace_ray`.
+    :func:`kdtrace._kdtree_traverse.trace_ray`. ``packet_size`` is 1 to :data:`PACKET_SIZE`.
     """
-    n = origins.shape[0]
-    packets = (n + packet_size - 1) // packet_size
+    if packet_size < 1 or packet_size > PACKET_SIZE:
+        raise ValueError("packet_size must be 1 to PACKET_SIZE")
+    packets = (origins.shape[0] + packet_size - 1) // packet_size
     per_chunk = (packets + n_chunks - 1) // n_chunks
     for c in prange(n_chunks):
-        scratch = packet_scratch(PACKET_SIZE)
-        lanes = scratch[1]
-        lane_ints = scratch[2]
-        s_node = np.empty(STACK_SIZE, np.int32)
-        s_ent = np.empty(STACK_SIZE, np.float64)
-        s_ext = np.empty(STACK_SIZE, np.float64)
-        ray = np.empty(RAY_SCRATCH)
-        org = np.empty((packet_size, 3))
-        dirs = np.empty((packet_size, 3))
-        for p in range(c * per_chunk, min(packets, (c + 1) * per_chunk)):
-            start = p * packet_size
-            m = min(packet_size, n - start)
-            same_tmax = True
-            for r in range(m):
-                for k in range(3):
-                    org[r, k] = origins[start + r, k]
-                    dirs[r, k] = directions[start + r, k]
-                same_tmax = same_tmax and tmax[start + r] == tmax[start]
-            if same_tmax and trace_packet(nodes, splits, refs, box, corners, org, dirs, m, tmax[start], watertight,
-                                          scratch):
-                for r in range(m):
-                    out_t[start + r] = lanes[_BEST, r]
-                    out_tri[start + r] = lane_ints[_TRI, r]
-                    out_u[start + r] = lanes[_U, r]
-                    out_v[start + r] = lanes[_V, r]
-                    out_visited[start + r] = lane_ints[_VISITED, r]
-                    out_tests[start + r] = lane_ints[_TESTS, r]
-                continue
-            for r in range(m):
-                i = start + r
-                t, tri, u, v, visited, tests = trace_ray(
-                    nodes, splits, refs, box, corners, org[r, 0], org[r, 1], org[r, 2], dirs[r, 0], dirs[r, 1],
-                    dirs[r, 2], 0.0, tmax[i], False, watertight, s_node, s_ent, s_ext, ray)
-                out_t[i] = t
-                out_tri[i] = tri
-                out_u[i] = u
-                out_v[i] = v
-                out_visited[i] = visited
-                out_tests[i] = tests
+        _trace_packets(nodes, splits, refs, box, corners, origins, directions, tmax, watertight, packet_size,
+                       c * per_chunk, min(packets, (c + 1) * per_chunk), out_t, out_tri, out_u, out_v, out_visited,
+                       out_tests)
 
 
 # numba's cache checks this file only; recompile when a module inlined from here changes.
-drop_stale_kernel_cache(sys.modules[__name__], _kdtree_build, _kdtree_layout, _kdtree_traverse)
+drop_stale_kernel_cache(sys.modules[__name__], _kdtree_build, _kdtree_layout, _kdtree_traverse, _stack)

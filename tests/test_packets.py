@@ -18,6 +18,7 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, Phase, given, settings
 from hypothesis import strategies as st
+from numba import njit
 
 from kdtrace import _kdtree_traverse as scalar_kernels
 from kdtrace import _packet_traverse as packet_kernels
@@ -75,17 +76,21 @@ def shared_origins(origins: np.ndarray, size: int) -> np.ndarray:
     return origins[first]
 
 
+@njit
+def _packet_completes(nodes, splits, refs, box, corners, origins, directions, n, watertight):
+    return packet_kernels.trace_packet(nodes, splits, refs, box, corners, origins, directions, n, np.inf, watertight,
+                                       packet_kernels.packet_scratch())
+
+
 def packet_runs(tree, origins, directions) -> int:
     """How many packets of ``PACKET_SIZE`` consecutive rays :func:`trace_packet` completes."""
     origins, directions, _, _ = validate_rays(origins, directions, 0.0, np.inf)
     size = packet_kernels.PACKET_SIZE
-    scratch = packet_kernels.packet_scratch(size)
     done = 0
     for start in range(0, len(origins), size):
         n = min(size, len(origins) - start)
-        done += packet_kernels.trace_packet(tree.node_words, tree.node_splits, tree.refs, tree.box, tree.corners,
-                                            origins[start:start + n], directions[start:start + n], n, np.inf,
-                                            tree.watertight, scratch)
+        done += _packet_completes(tree.node_words, tree.node_splits, tree.refs, tree.box, tree.corners,
+                                  origins[start:start + n], directions[start:start + n], n, tree.watertight)
     return done
 
 
