@@ -333,6 +333,18 @@ def trace_ray(
     return best_t, best_tri, best_u, best_v, visited, tests
 
 
+@njit(cache=True, inline="always")
+def store_hit(outputs, i, t, tri, u, v, visited, tests):
+    """Write ray ``i``'s result into the batch outputs ``(t, tri, u, v, visited, tests)``."""
+    out_t, out_tri, out_u, out_v, out_visited, out_tests = outputs
+    out_t[i] = t
+    out_tri[i] = tri
+    out_u[i] = u
+    out_v[i] = v
+    out_visited[i] = visited
+    out_tests[i] = tests
+
+
 @njit(cache=True, _nrt=False)
 def _trace_rays(nodes, splits, refs, box, corners, origins, directions, tmin, tmax, any_hit, watertight, first, end,
                 out_t, out_tri, out_u, out_v, out_visited, out_tests):
@@ -349,6 +361,7 @@ def _trace_rays(nodes, splits, refs, box, corners, origins, directions, tmin, tm
     st_ent = stack_empty(STACK_SIZE, np.float64)
     st_ext = stack_empty(STACK_SIZE, np.float64)
     ray = stack_empty(RAY_SCRATCH, np.float64)
+    outputs = (out_t, out_tri, out_u, out_v, out_visited, out_tests)
     for i in range(first, end):
         ox, oy, oz = origins[i, 0], origins[i, 1], origins[i, 2]
         dx, dy, dz = directions[i, 0], directions[i, 1], directions[i, 2]
@@ -358,12 +371,7 @@ def _trace_rays(nodes, splits, refs, box, corners, origins, directions, tmin, tm
         else:
             t, tri, u, v, visited, tests = trace_ray(nodes, splits, refs, box, corners, ox, oy, oz, dx, dy, dz,
                                                      tmin[i], tmax[i], False, watertight, st_node, st_ent, st_ext, ray)
-        out_t[i] = t
-        out_tri[i] = tri
-        out_u[i] = u
-        out_v[i] = v
-        out_visited[i] = visited
-        out_tests[i] = tests
+        store_hit(outputs, i, t, tri, u, v, visited, tests)
 
 
 @njit(cache=True, parallel=True)

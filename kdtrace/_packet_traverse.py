@@ -32,6 +32,7 @@ from kdtrace._kdtree_traverse import (
     decode_node,
     intersect_triangle,
     ray_shear,
+    store_hit,
     trace_ray,
 )
 from kdtrace._stack import stack_empty
@@ -386,6 +387,7 @@ def _trace_packets(nodes, splits, refs, box, corners, origins, directions, tmax,
     ray = stack_empty(RAY_SCRATCH, np.float64)
     org = stack_empty((PACKET_SIZE, 3), np.float64)
     dirs = stack_empty((PACKET_SIZE, 3), np.float64)
+    outputs = (out_t, out_tri, out_u, out_v, out_visited, out_tests)
     n = origins.shape[0]
     for p in range(first_packet, end_packet):
         start = p * packet_size
@@ -399,24 +401,15 @@ def _trace_packets(nodes, splits, refs, box, corners, origins, directions, tmax,
         if same_tmax and trace_packet(nodes, splits, refs, box, corners, org, dirs, m, tmax[start], watertight,
                                       scratch):
             for r in range(m):
-                out_t[start + r] = lanes[_BEST, r]
-                out_tri[start + r] = lane_ints[_TRI, r]
-                out_u[start + r] = lanes[_U, r]
-                out_v[start + r] = lanes[_V, r]
-                out_visited[start + r] = lane_ints[_VISITED, r]
-                out_tests[start + r] = lane_ints[_TESTS, r]
+                store_hit(outputs, start + r, lanes[_BEST, r], lane_ints[_TRI, r], lanes[_U, r], lanes[_V, r],
+                          lane_ints[_VISITED, r], lane_ints[_TESTS, r])
             continue
         for r in range(m):
             i = start + r
             t, tri, u, v, visited, tests = trace_ray(
                 nodes, splits, refs, box, corners, org[r, 0], org[r, 1], org[r, 2], dirs[r, 0], dirs[r, 1],
                 dirs[r, 2], 0.0, tmax[i], False, watertight, s_node, s_ent, s_ext, ray)
-            out_t[i] = t
-            out_tri[i] = tri
-            out_u[i] = u
-            out_v[i] = v
-            out_visited[i] = visited
-            out_tests[i] = tests
+            store_hit(outputs, i, t, tri, u, v, visited, tests)
 
 
 @njit(cache=True, parallel=True)
