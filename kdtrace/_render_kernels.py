@@ -454,7 +454,7 @@ def render_tile(
     Compiled without numba's runtime (``_nrt=False``), so every buffer is on its stack
     (:func:`kdtrace._stack.stack_empty`) and no reference to an array is counted: the
     inlined :func:`path_sample` and traversals had made about two dozen atomic reference
-    count calls per sample and per bounce, and without them the path tracer renders 1.9-2.1x
+    count calls per sample and per bounce, and without them the path tracer renders 1.86-2.10x
     faster at max_depth 1 and 1.13-1.17x at max_depth 3 on the Cornell boxes and car
     (Crytek Sponza 1.21x and 1.08x; 256x256, 8 spp, 2 threads, alternating processes,
     2026-12-05). Same images.
