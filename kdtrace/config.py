@@ -54,7 +54,7 @@ class KDTreeConfig:
 
     traversal_cost: float = 1.0
     intersection_cost: float = 5.0
-    min_leaf_size: int = 4
+    min_leaf_size: int = 8
     depth_base: float = 8.0
     depth_log_factor: float = 1.3
     axis_selection: str = "all"

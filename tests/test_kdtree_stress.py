@@ -295,17 +295,21 @@ def test_split_plane_edge_rays_are_not_vacuous():
     from tests.strategies import _corners, _edges_in_split_planes, build_scene
 
     scene = build_scene("heightfield", 100, 5)
-    tree = build_trees(scene, None)["local"]
+    tree = build_trees(scene, KDTreeConfig(min_leaf_size=4))["local"]
     axis, a, b = _edges_in_split_planes(tree, _corners(scene))
     assert len(axis) > 20 and np.all(a[np.arange(len(axis)), axis] == b[np.arange(len(axis)), axis])
 
 
 def test_split_planes_exist_for_the_split_plane_rays():
-    """Guard against a vacuous split-plane test: the strategies' trees do split."""
+    """Guard against a vacuous split-plane test: the strategies' trees do split.
+
+    With leaves of up to 4 triangles, three of the four sizes the strategies draw (with the default 8,
+    this 128-triangle scene gets no z split planes).
+    """
     from tests.strategies import build_scene
 
     scene = build_scene("terraces", 8, 3, scale=1e3, offset=(1e5, 0.0, -2e4))
-    trees = build_trees(scene, None)
+    trees = build_trees(scene, KDTreeConfig(min_leaf_size=4))
     axes, positions = split_planes(trees["local"])
     assert len(axes) > 10 and set(axes.tolist()) == {0, 1, 2}
     # Flat terraces lie exactly in some z split planes.
