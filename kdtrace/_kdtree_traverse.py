@@ -334,6 +334,14 @@ def trace_ray(
 
 
 @njit(cache=True, inline="always")
+def ray_scratch():
+    """:func:`trace_ray`'s per-thread buffers ``(st_node, st_ent, st_ext, ray)``, on the stack of
+    the function it is inlined into (:func:`kdtrace._stack.stack_empty`)."""
+    return (stack_empty(STACK_SIZE, np.int32), stack_empty(STACK_SIZE, np.float64),
+            stack_empty(STACK_SIZE, np.float64), stack_empty(RAY_SCRATCH, np.float64))
+
+
+@njit(cache=True, inline="always")
 def store_hit(outputs, i, t, tri, u, v, visited, tests):
     """Write ray ``i``'s result into the batch outputs ``(t, tri, u, v, visited, tests)``."""
     out_t, out_tri, out_u, out_v, out_visited, out_tests = outputs
@@ -357,10 +365,7 @@ def _trace_rays(nodes, splits, refs, box, corners, origins, directions, tmin, tm
     without numba's runtime: the traversal stack is in its stack frame and no reference to an
     array is counted (see :mod:`kdtrace._stack`).
     """
-    st_node = stack_empty(STACK_SIZE, np.int32)
-    st_ent = stack_empty(STACK_SIZE, np.float64)
-    st_ext = stack_empty(STACK_SIZE, np.float64)
-    ray = stack_empty(RAY_SCRATCH, np.float64)
+    st_node, st_ent, st_ext, ray = ray_scratch()
     outputs = (out_t, out_tri, out_u, out_v, out_visited, out_tests)
     for i in range(first, end):
         ox, oy, oz = origins[i, 0], origins[i, 1], origins[i, 2]

@@ -26,11 +26,11 @@ from kdtrace import _kdtree_build, _kdtree_layout, _kdtree_traverse, _stack
 from kdtrace._kdtree_build import LEAF
 from kdtrace._kdtree_traverse import (
     INTERVAL_PAD,
-    RAY_SCRATCH,
     STACK_SIZE,
     clip_to_box,
     decode_node,
     intersect_triangle,
+    ray_scratch,
     ray_shear,
     store_hit,
     trace_ray,
@@ -381,10 +381,7 @@ def _trace_packets(nodes, splits, refs, box, corners, origins, directions, tmax,
     scratch = packet_scratch()
     lanes = scratch[1]
     lane_ints = scratch[2]
-    s_node = stack_empty(STACK_SIZE, np.int32)
-    s_ent = stack_empty(STACK_SIZE, np.float64)
-    s_ext = stack_empty(STACK_SIZE, np.float64)
-    ray = stack_empty(RAY_SCRATCH, np.float64)
+    s_node, s_ent, s_ext, ray = ray_scratch()
     org = stack_empty((PACKET_SIZE, 3), np.float64)
     dirs = stack_empty((PACKET_SIZE, 3), np.float64)
     outputs = (out_t, out_tri, out_u, out_v, out_visited, out_tests)

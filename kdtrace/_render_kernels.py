@@ -36,7 +36,7 @@ import numpy as np
 from numba import literally, njit, prange
 
 from kdtrace import _kdtree_build, _kdtree_layout, _kdtree_traverse, _packet_traverse, _stack
-from kdtrace._kdtree_traverse import RAY_SCRATCH, STACK_SIZE, trace_ray
+from kdtrace._kdtree_traverse import ray_scratch, trace_ray
 from kdtrace._packet_traverse import PACKET_BEST, PACKET_SIZE, PACKET_TRI, PACKET_U, PACKET_V, packet_scratch, trace_packet
 from kdtrace._stack import stack_empty
 from kdtrace.cache import drop_stale_kernel_cache
@@ -463,11 +463,8 @@ def render_tile(
     tree = (nodes, splits, refs, box, corners)
     shading = (tri_mat, tri_normals, tri_uv, mat_kind, mat_albedo, mat_emission, mat_ior, mat_tex, tex_pixels, tex_info,
                emit_tri, emit_cdf, tri_emit_pdf, sky_rgb)
-    st_node = stack_empty(STACK_SIZE, np.int32)
-    st_ent = stack_empty(STACK_SIZE, np.float64)
-    st_ext = stack_empty(STACK_SIZE, np.float64)
-    ray = stack_empty(RAY_SCRATCH, np.float64)
-    scratch = (st_node, st_ent, st_ext, ray)
+    scratch = ray_scratch()
+    st_node, st_ent, st_ext, ray = scratch
     lane_scratch = packet_scratch()
     lanes = lane_scratch[1]
     lane_ints = lane_scratch[2]
