@@ -211,6 +211,10 @@ class RenderConfig:
         Distance between the two pinholes of a stereo pair, scene units.
     camera_packets : bool
         Trace camera rays in packets of coherent rays (same image as one by one).
+    last_ray_max_emitters : int
+        Trace a path's last ray against the emitter triangles one by one, and the tree only
+        for occlusion, when the scene has at most this many emitter triangles (same image;
+        ``kdtrace._render_kernels.last_ray_hit``); 0 turns it off.
     """
 
     spp: int = 4
@@ -220,8 +224,11 @@ class RenderConfig:
     tile_size: int = 16
     eye_separation: float = 0.065
     camera_packets: bool = True
+    last_ray_max_emitters: int = 16
 
     def __post_init__(self) -> None:
+        if self.last_ray_max_emitters < 0:
+            raise ValueError("render.last_ray_max_emitters must be >= 0")
         if self.spp < 1 or self.tile_size < 1 or self.rr_depth < 1:
             raise ValueError("render.spp, render.tile_size and render.rr_depth must be >= 1")
         if self.max_depth < 1 and self.max_depth != -1:

@@ -259,7 +259,8 @@ def tile_stride(tiles: int) -> int:
     return stride
 
 
-def _run(flags, packed, cam, width, height, spp, max_depth, rr_depth, seed, first_sample, tile_size, aux, camera_packets):
+def _run(flags, packed, cam, width, height, spp, max_depth, rr_depth, seed, first_sample, tile_size, aux, camera_packets,
+         last_ray_shortcut):
     rgb = np.zeros((height, width, 3), np.float32)
     variance = np.zeros((height, width, 3), np.float32)
     shape = (height, width) if aux else (0, 0)
@@ -269,7 +270,7 @@ def _run(flags, packed, cam, width, height, spp, max_depth, rr_depth, seed, firs
     tiles = -(-width // tile_size) * -(-height // tile_size)
     counts = np.zeros((tiles, 4), np.int64)
     args = (*flags, *packed.values(), cam, width, height, spp, max_depth, rr_depth, np.uint64(seed), first_sample, tile_size,
-            tile_stride(tiles), camera_packets, rgb, variance, albedo, normal, depth, counts)
+            tile_stride(tiles), camera_packets, last_ray_shortcut, rgb, variance, albedo, normal, depth, counts)
     # numba resolves a ``literally`` kernel's argument types anew on every call: 70-100 ms
     # per call, measured 2026-12-02 on cbox-original (more than a whole 256x256 frame at
     # 1 spp). Once a specialisation exists, its machine code is called directly.
@@ -298,6 +299,7 @@ def render(
     tree: KDTree | None = None,
     first_sample: int = 0,
     camera_packets: bool | None = None,
+    last_ray_shortcut: bool | None = None,
 ) -> RenderResult:
     """Path trace ``scene`` from its camera on a KD-tree.
 
@@ -336,6 +338,12 @@ def render(
     camera_packets : bool, optional
         Trace camera rays in packets (default ``[render] camera_packets``); False traces
         them one by one, the oracle. The image is the same bit for bit.
+    last_ray_shortcut : bool, optional
+        Trace each path's last ray only as far as its radiance needs: the emitter triangles
+        one by one, then an any-hit query for what lies before the nearest (or, with a sky,
+        for anything), see :func:`kdtrace._render_kernels.last_ray_hit`. Default: on when
+        the scene has at most ``[render] last_ray_max_emitters`` emitter triangles. False
+        traces the last ray's closest hit, the oracle; the image is the same.
 
     Returns
     -------
@@ -367,6 +375,9 @@ def render(
         raise ValueError(f"first_sample must be an integer in [0, 2^62), got {first_sample!r}")
     first_sample = int(first_sample)
     camera_packets = bool(config.camera_packets if camera_packets is None else camera_packets)
+    if last_ray_shortcut is None:
+        last_ray_shortcut = int(scene.emitter_triangles.size) <= config.last_ray_max_emitters
+    last_ray_shortcut = bool(last_ray_shortcut)
     camera = scene.camera if camera is None else camera
     _check_camera(camera)
     width = _positive_int("width", camera.width if width is None else width)
@@ -395,11 +406,12 @@ def render(
     rr_depth = config.rr_depth
 
     started = time.perf_counter()  # first call compiles (or loads from numba's cache)
-    _run(flags, packed, cam, 1, 1, 1, depth_limit, rr_depth, seed, 0, 1, aux, camera_packets)
+    _run(flags, packed, cam, 1, 1, 1, depth_limit, rr_depth, seed, 0, 1, aux, camera_packets, last_ray_shortcut)
     compile_seconds = time.perf_counter() - started
     started = time.perf_counter()
     rgb, variance, albedo, normal, depth, counts = _run(
-        flags, packed, cam, width, height, spp, depth_limit, rr_depth, seed, first_sample, tile_size, aux, camera_packets)
+        flags, packed, cam, width, height, spp, depth_limit, rr_depth, seed, first_sample, tile_size, aux, camera_packets,
+        last_ray_shortcut)
     seconds = time.perf_counter() - started
     if aux and not (depth > 0).any():
         warnings.warn(f"scene {scene.name!r}: no camera ray hits geometry (the camera looks at nothing)",
@@ -418,6 +430,7 @@ def render(
         "compile_seconds": compile_seconds,
         "spp": spp, "first_sample": first_sample, "max_depth": depth_limit, "rr_depth": rr_depth, "seed": int(seed),
         "width": width, "height": height, "tile_size": tile_size, "variant": tree.variant, "camera_packets": camera_packets,
+        "last_ray_shortcut": last_ray_shortcut,
         "threads": numba.get_num_threads(),
     }
     return RenderResult(

@@ -239,6 +239,36 @@ def test_specialised_and_general_kernels_agree(cbox):
 
 
 # ------------------------------------------------------------------ stereo
+@pytest.mark.parametrize("case", ["emitters", "glass", "emitters and sky", "sky only", "textures and sky"])
+def test_last_ray_shortcut_gives_the_closest_hit_walks_image(cbox, case):
+    """Bit for bit, at max_depth 2 and 3: the last ray tested against the emitters and then for
+    occlusion (or escape) gives the image of its full closest-hit walk. The Cornell box's ceiling
+    sees the back of the light, its open front lets rays reach the sky, and its glass box makes
+    last rays follow specular bounces."""
+    scene, features = cbox, None
+    if case == "glass":
+        scene = with_material(cbox, "tallBox", kind="dielectric", ior=1.5)
+    elif case == "textures and sky":
+        scene, features = _load("car"), ALL_FEATURES
+    if "sky" in case:
+        scene = dataclasses.replace(scene, sky=Sky((0.3, 0.4, 0.5)),
+                                    cameras=[dataclasses.replace(scene.camera, fov=150.0)])
+    if case == "sky only":
+        scene = with_material(scene, "light", emission=(0.0, 0.0, 0.0))
+        assert scene.emitter_triangles.size == 0
+    tree = build_kdtree(scene)
+    for max_depth in (2, 3):
+        full, shortcut = (render(scene, spp=3, max_depth=max_depth, seed=SEED, width=37, height=21, tree=tree,
+                                 features=features, last_ray_shortcut=flag) for flag in (False, True))
+        for field in ("rgb", "variance", "albedo", "normal", "depth"):
+            assert np.array_equal(getattr(full, field), getattr(shortcut, field)), f"max_depth {max_depth}: {field}"
+        assert full.stats["rays"] == shortcut.stats["rays"]
+        assert shortcut.stats["last_ray_shortcut"] and not full.stats["last_ray_shortcut"]
+        assert full.rgb.max() > 0.0
+    # On by default for a scene with few emitter triangles.
+    assert render(scene, spp=1, width=8, height=8, tree=tree, features=features).stats["last_ray_shortcut"]
+
+
 def test_stereo_pair_differs_by_horizontal_parallax_only(cbox):
     left_camera, right_camera = stereo_cameras(cbox.camera, 0.3)
     offset = np.subtract(right_camera.position, left_camera.position)
