@@ -432,3 +432,38 @@ def test_stress_many_examples(case, config, seed, ray_kind, exponent, tiny):
     """Every scene kind x every ray kind x direction magnitudes, larger scenes, many more examples."""
     exact = ray_kind == "random" and case.params["kind"] in GENERIC_KINDS and not case.params.get("duplicates")
     run_case(case, config, ray_kind, 1500, seed, exact=exact, direction_scale=10.0**exponent, tiny=tiny)
+
+
+@fast(12)
+@given(case=stress_scenes(kinds=("soup", "slivers", "heightfield", "big_and_small"), max_triangles=300,
+                          allow_duplicates=False),
+       config=tree_configs, seed=st.integers(0, 2**16), sky=st.booleans())
+def test_last_ray_shortcut_renders_the_closest_hit_walks_image(case, config, seed, sky):
+    """The path tracer's last ray against the emitters, then an any-hit query
+    (:func:`kdtrace._render_kernels.last_ray_hit`), gives the image of its full closest-hit walk
+    bit for bit: random emitting triangles (front and back faces), with and without a sky, any
+    scale and offset, every tree configuration. Triangles are in general position, so no
+    occluder ties an emitter's distance (the one case the two may break differently)."""
+    from kdtrace.render import render
+    from kdtrace.scene import Camera, Sky
+
+    scene = case.scene
+    rng = np.random.default_rng(seed)
+    emitting = rng.random(len(scene.triangles)) < 0.2
+    emitting[rng.integers(len(scene.triangles))] = True
+    lo, hi = scene.vertices.min(axis=0).astype(np.float64), scene.vertices.max(axis=0).astype(np.float64)
+    centre, extent = (lo + hi) / 2, float(np.linalg.norm(hi - lo))
+    direction = rng.normal(size=3)
+    camera = Camera(tuple(centre + 0.4 * extent * direction / np.linalg.norm(direction)), tuple(centre),
+                    up=tuple(rng.normal(size=3)), fov=100.0, width=12, height=10)
+    scene = Scene(scene.name, scene.vertices, scene.triangles, emitting.astype(np.int32),
+                  [Material("grey", albedo=(0.6, 0.5, 0.4)), Material("light", emission=(3.0, 2.0, 1.0))],
+                  cameras=[camera], sky=Sky((0.2, 0.3, 0.4)) if sky else None)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)  # zero-area triangles, cameras that see nothing
+        tree = build_kdtree(scene, "local", config=config)
+        for max_depth in (2, 3):
+            full, shortcut = (render(scene, spp=2, max_depth=max_depth, seed=seed, tree=tree, last_ray_shortcut=flag)
+                              for flag in (False, True))
+            assert np.array_equal(full.rgb, shortcut.rgb), f"{case}, max_depth {max_depth}"
+            assert np.array_equal(full.variance, shortcut.variance), f"{case}, max_depth {max_depth}"
