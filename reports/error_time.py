@@ -760,7 +760,7 @@ def with_plugins(rows: Sequence[dict], plugin_rows: Sequence[dict]) -> list[dict
 
 def scene_rows(kind: str, version: int, measure_scene: Callable[..., dict], config: Config, profile_name: str,
                out_dir: Path, fresh: bool, progress: bool, blend_spp: Sequence[int] = (),
-               demodulated_scenes: Sequence[str] = ()) -> list[dict]:
+               demodulated_scenes: Sequence[str] = (), networks: bool = True) -> list[dict]:
     """Per-scene rows of a report over the profile's reconstruction scenes, reused when their key matches.
 
     A row is cached in ``out_dir/rows/KIND/SCENE.json`` under a content key of the scene,
@@ -784,6 +784,8 @@ def scene_rows(kind: str, version: int, measure_scene: Callable[..., dict], conf
         Fit the denoisers' blend weights at these spp (:meth:`Reconstruction.load`); () skips it.
     demodulated_scenes : sequence of str
         Scenes whose albedo-demodulated denoiser is loaded too (:meth:`Reconstruction.load`).
+    networks : bool
+        Load the networks for ``measure_scene``; False passes None (a report that renders only).
 
     Returns
     -------
@@ -809,6 +811,8 @@ def scene_rows(kind: str, version: int, measure_scene: Callable[..., dict], conf
                 bar.write(f"{kind} {name}: reusing the row measured {saved['measured_at']} (pass fresh=True to measure again)")
                 rows.append(saved["row"])
                 continue
+        if not networks:
+            models.append(None)
         if not models:
             bar.set_postfix_str("reconstruction networks")
             models.append(Reconstruction.load(names, recon, names, progress, blend_spp=blend_spp,

@@ -51,6 +51,7 @@ PARTS = {
     "agreement": "reports.agreement",
     "reconstruction": "reports.reconstruction_tables",
     "error_time": "reports.error_time",
+    "throughput": "reports.throughput",
     "combined": "reports.combined",
     "scaleout": "reports.scaleout",
 }
