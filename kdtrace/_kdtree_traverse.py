@@ -145,6 +145,44 @@ def intersect_triangle_watertight(tri, corners, okx, oky, okz, kx, ky, kz, sx, s
 
 
 @njit(cache=True, inline="always")
+def span_blocked(span_corners, n_refs, first, count, okx, oky, okz, kx, ky, kz, sx, sy, sz, tmin, tmax):
+    """Whether any of the references ``first .. first + count - 1`` is hit in (tmin, tmax).
+
+    :func:`intersect_triangle_watertight`'s decision, the same arithmetic on the same numbers,
+    for every reference of the span with no early out and no branch per triangle, so the loop
+    runs on vector registers. ``span_corners`` holds the references' corners as a structure of
+    arrays (:attr:`kdtrace.kdtree.KDTree.span_corners`: row ``c`` of 9, length ``n_refs``, flat).
+    """
+    hit = False
+    akx = np.uint64(kx) * n_refs
+    aky = np.uint64(ky) * n_refs
+    akz = np.uint64(kz) * n_refs
+    b = np.uint64(3) * n_refs
+    c = np.uint64(6) * n_refs
+    for k in range(np.uint64(first), np.uint64(first) + np.uint64(count)):
+        az = span_corners[akz + k] - okz
+        bz = span_corners[b + akz + k] - okz
+        cz = span_corners[c + akz + k] - okz
+        ax = (span_corners[akx + k] - okx) - sx * az
+        ay = (span_corners[aky + k] - oky) - sy * az
+        bx = (span_corners[b + akx + k] - okx) - sx * bz
+        by = (span_corners[b + aky + k] - oky) - sy * bz
+        cx = (span_corners[c + akx + k] - okx) - sx * cz
+        cy = (span_corners[c + aky + k] - oky) - sy * cz
+        w0 = cx * by - cy * bx
+        w1 = ax * cy - ay * cx
+        w2 = bx * ay - by * ax
+        inside = not (((w0 < 0.0) | (w1 < 0.0) | (w2 < 0.0)) & ((w0 > 0.0) | (w1 > 0.0) | (w2 > 0.0)))
+        det = w0 + w1 + w2
+        t_scaled = (w0 * az + w1 * bz + w2 * cz) * sz
+        negative = det < 0.0
+        det = -det if negative else det
+        t_scaled = -t_scaled if negative else t_scaled
+        hit |= inside & (det != 0.0) & (t_scaled > tmin * det) & (t_scaled < tmax * det)
+    return hit
+
+
+@njit(cache=True, inline="always")
 def clip_to_box(box, ox, oy, oz, dx, dy, dz, tmin, tmax):
     """Slab test against box = (xmin, ymin, zmin, xmax, ymax, zmax).
 
@@ -199,7 +237,7 @@ def decode_node(nodes, node, spans):
 
 @njit(cache=True, inline="always")  # inlined: no per-ray call, no reference counting of the arrays
 def trace_ray(
-    nodes, splits, refs, box, corners,
+    nodes, splits, refs, box, corners, span_corners,
     ox, oy, oz, dx, dy, dz, tmin, tmax, any_hit, watertight, st_node, st_ent, st_ext, ray,
 ):
     """Closest (or any) hit of one ray; returns (t, triangle, u, v, nodes_visited, tests).
@@ -217,6 +255,14 @@ def trace_ray(
     bunny's random rays, one thread, 2026-12-02). With ``any_hit`` the segment is walked
     from its end (the far child of a split first): the answer, hit or no hit, is the same,
     and the triangle returned is any one in (tmin, tmax).
+
+    An any-hit query with the watertight test and a non-empty ``span_corners`` (the
+    references' corners as a structure of arrays) first asks :func:`span_blocked` whether a
+    node's span holds any hit, all its triangles at once, and tests them one by one only where
+    it does: the same hit, the same counters, and a span without a hit (most of them on a
+    shadow ray's way to a light) costs no branch per triangle. The path tracer's occlusion
+    queries ran 1.15-1.19x faster so at max_depth 3 (cbox-original, cbox-sphere, car; Crytek
+    Sponza 1.00x), same images, 2026-12-05. Pass an empty array to test one by one.
     """
     best_t = tmax
     best_tri = -1
@@ -241,12 +287,18 @@ def trace_ray(
     kx, ky, kz, sx, sy, sz = ray_shear(dx, dy, dz) if watertight else (0, 1, 2, 0.0, 0.0, 0.0)
     okx, oky, okz = ray[kx], ray[ky], ray[kz]
     spans = np.uint64(nodes.shape[0] >> 2)
+    n_refs = np.uint64(refs.shape[0])
+    vector_spans = any_hit and watertight and span_corners.shape[0] > 0
     node = np.uint64(0)
     sp = 0
     while True:
         visited += 1
         word, axis, first, count = decode_node(nodes, node, spans)
         if count > 0:
+            if vector_spans and not span_blocked(span_corners, n_refs, first, count, okx, oky, okz, kx, ky, kz,
+                                                 sx, sy, sz, tmin, best_t):
+                tests += count  # what testing them one by one would have counted
+                count = 0
             for k in range(first, first + count):
                 tri = refs[np.uint64(k)]
                 tests += 1
@@ -367,15 +419,18 @@ def _trace_rays(nodes, splits, refs, box, corners, origins, directions, tmin, tm
     """
     st_node, st_ent, st_ext, ray = ray_scratch()
     outputs = (out_t, out_tri, out_u, out_v, out_visited, out_tests)
+    one_by_one = corners.reshape(-1)[:0]  # no span_corners: the batch queries test triangles one by one
     for i in range(first, end):
         ox, oy, oz = origins[i, 0], origins[i, 1], origins[i, 2]
         dx, dy, dz = directions[i, 0], directions[i, 1], directions[i, 2]
         if any_hit:
-            t, tri, u, v, visited, tests = trace_ray(nodes, splits, refs, box, corners, ox, oy, oz, dx, dy, dz,
-                                                     tmin[i], tmax[i], True, watertight, st_node, st_ent, st_ext, ray)
+            t, tri, u, v, visited, tests = trace_ray(nodes, splits, refs, box, corners, one_by_one, ox, oy, oz,
+                                                     dx, dy, dz, tmin[i], tmax[i], True, watertight, st_node, st_ent,
+                                                     st_ext, ray)
         else:
-            t, tri, u, v, visited, tests = trace_ray(nodes, splits, refs, box, corners, ox, oy, oz, dx, dy, dz,
-                                                     tmin[i], tmax[i], False, watertight, st_node, st_ent, st_ext, ray)
+            t, tri, u, v, visited, tests = trace_ray(nodes, splits, refs, box, corners, one_by_one, ox, oy, oz,
+                                                     dx, dy, dz, tmin[i], tmax[i], False, watertight, st_node, st_ent,
+                                                     st_ext, ray)
         store_hit(outputs, i, t, tri, u, v, visited, tests)
 
 

@@ -215,6 +215,9 @@ class RenderConfig:
         Trace a path's last ray against the emitter triangles one by one, and the tree only
         for occlusion, when the scene has at most this many emitter triangles (same image;
         ``kdtrace._render_kernels.last_ray_hit``); 0 turns it off.
+    vector_occlusion : bool
+        The path tracer's occlusion queries test a node's triangles all at once before one by
+        one (same image; ``kdtrace._kdtree_traverse.span_blocked``).
     """
 
     spp: int = 4
@@ -225,6 +228,7 @@ class RenderConfig:
     eye_separation: float = 0.065
     camera_packets: bool = True
     last_ray_max_emitters: int = 16
+    vector_occlusion: bool = True
 
     def __post_init__(self) -> None:
         if self.last_ray_max_emitters < 0:

@@ -438,12 +438,14 @@ def test_stress_many_examples(case, config, seed, ray_kind, exponent, tiny):
 @given(case=stress_scenes(kinds=("soup", "slivers", "heightfield", "big_and_small"), max_triangles=300,
                           allow_duplicates=False),
        config=tree_configs, seed=st.integers(0, 2**16), sky=st.booleans())
-def test_last_ray_shortcut_renders_the_closest_hit_walks_image(case, config, seed, sky):
+def test_last_ray_shortcut_and_vector_occlusion_render_the_oracles_image(case, config, seed, sky):
     """The path tracer's last ray against the emitters, then an any-hit query
-    (:func:`kdtrace._render_kernels.last_ray_hit`), gives the image of its full closest-hit walk
-    bit for bit: random emitting triangles (front and back faces), with and without a sky, any
-    scale and offset, every tree configuration. Triangles are in general position, so no
-    occluder ties an emitter's distance (the one case the two may break differently)."""
+    (:func:`kdtrace._render_kernels.last_ray_hit`), and occlusion queries testing a node's
+    triangles all at once (:func:`kdtrace._kdtree_traverse.span_blocked`) give the image of the
+    full closest-hit walk and one-by-one tests bit for bit: random emitting triangles (front and
+    back faces), with and without a sky, any scale and offset, every tree configuration.
+    Triangles are in general position, so no occluder ties an emitter's distance (the one case
+    the last-ray shortcut may break differently)."""
     from kdtrace.render import render
     from kdtrace.scene import Camera, Sky
 
@@ -463,7 +465,7 @@ def test_last_ray_shortcut_renders_the_closest_hit_walks_image(case, config, see
         warnings.simplefilter("ignore", UserWarning)  # zero-area triangles, cameras that see nothing
         tree = build_kdtree(scene, "local", config=config)
         for max_depth in (2, 3):
-            full, shortcut = (render(scene, spp=2, max_depth=max_depth, seed=seed, tree=tree, last_ray_shortcut=flag)
-                              for flag in (False, True))
+            full, shortcut = (render(scene, spp=2, max_depth=max_depth, seed=seed, tree=tree, last_ray_shortcut=flag,
+                                     vector_occlusion=flag) for flag in (False, True))
             assert np.array_equal(full.rgb, shortcut.rgb), f"{case}, max_depth {max_depth}"
             assert np.array_equal(full.variance, shortcut.variance), f"{case}, max_depth {max_depth}"

@@ -240,11 +240,12 @@ def test_specialised_and_general_kernels_agree(cbox):
 
 # ------------------------------------------------------------------ stereo
 @pytest.mark.parametrize("case", ["emitters", "glass", "emitters and sky", "sky only", "textures and sky"])
-def test_last_ray_shortcut_gives_the_closest_hit_walks_image(cbox, case):
+def test_last_ray_shortcut_and_vector_occlusion_give_the_oracles_image(cbox, case):
     """Bit for bit, at max_depth 2 and 3: the last ray tested against the emitters and then for
-    occlusion (or escape) gives the image of its full closest-hit walk. The Cornell box's ceiling
-    sees the back of the light, its open front lets rays reach the sky, and its glass box makes
-    last rays follow specular bounces."""
+    occlusion (or escape) gives the image of its full closest-hit walk, and occlusion queries
+    that test a node's triangles all at once give that of testing them one by one, each alone
+    and together. The Cornell box's ceiling sees the back of the light, its open front lets rays
+    reach the sky, and its glass box makes last rays follow specular bounces."""
     scene, features = cbox, None
     if case == "glass":
         scene = with_material(cbox, "tallBox", kind="dielectric", ior=1.5)
@@ -258,15 +259,19 @@ def test_last_ray_shortcut_gives_the_closest_hit_walks_image(cbox, case):
         assert scene.emitter_triangles.size == 0
     tree = build_kdtree(scene)
     for max_depth in (2, 3):
-        full, shortcut = (render(scene, spp=3, max_depth=max_depth, seed=SEED, width=37, height=21, tree=tree,
-                                 features=features, last_ray_shortcut=flag) for flag in (False, True))
-        for field in ("rgb", "variance", "albedo", "normal", "depth"):
-            assert np.array_equal(getattr(full, field), getattr(shortcut, field)), f"max_depth {max_depth}: {field}"
-        assert full.stats["rays"] == shortcut.stats["rays"]
-        assert shortcut.stats["last_ray_shortcut"] and not full.stats["last_ray_shortcut"]
-        assert full.rgb.max() > 0.0
-    # On by default for a scene with few emitter triangles.
-    assert render(scene, spp=1, width=8, height=8, tree=tree, features=features).stats["last_ray_shortcut"]
+        oracle, *fast = (render(scene, spp=3, max_depth=max_depth, seed=SEED, width=37, height=21, tree=tree,
+                                features=features, last_ray_shortcut=shortcut, vector_occlusion=vector)
+                         for shortcut, vector in ((False, False), (True, False), (False, True), (True, True)))
+        for result in fast:
+            for field in ("rgb", "variance", "albedo", "normal", "depth"):
+                assert np.array_equal(getattr(oracle, field), getattr(result, field)), f"max_depth {max_depth}: {field}"
+            assert oracle.stats["rays"] == result.stats["rays"]
+        assert not oracle.stats["last_ray_shortcut"] and not oracle.stats["vector_occlusion"]
+        assert fast[-1].stats["last_ray_shortcut"] and fast[-1].stats["vector_occlusion"]
+        assert oracle.rgb.max() > 0.0
+    # Both on by default for a scene with few emitter triangles.
+    stats = render(scene, spp=1, width=8, height=8, tree=tree, features=features).stats
+    assert stats["last_ray_shortcut"] and stats["vector_occlusion"]
 
 
 def test_stereo_pair_differs_by_horizontal_parallax_only(cbox):
