@@ -101,27 +101,23 @@ def ray_shear(dx, dy, dz):
 
 
 @njit(cache=True, inline="always")
-def intersect_triangle_watertight(tri, corners, okx, oky, okz, kx, ky, kz, sx, sy, sz, tmin, tmax):
-    """Watertight ray-triangle test (Woop, Benthin, Wald 2013), double-sided, edges inclusive.
+def watertight_decision(a_x, a_y, a_z, b_x, b_y, b_z, c_x, c_y, c_z, okx, oky, okz, sx, sy, sz, tmin, tmax):
+    """The decision of :func:`intersect_triangle_watertight` from a triangle's vertices a, b, c,
+    each given in the permuted order ``(kx, ky, kz)`` of :func:`ray_shear`.
 
-    The vertices move into ray space (origin at ``o``, direction sheared onto +z by
-    :func:`ray_shear`), where three 2D edge functions decide the hit. A vertex shared
-    by two triangles gets bit-identical ray-space coordinates in both, and the edge
-    function of a shared edge is exactly the negation of the neighbour's
-    (``a*b - c*d`` against ``c*d - a*b``), so a ray through an edge is never missed by
-    both triangles; Möller–Trumbore gives no such guarantee. Float64 on float32
-    vertices. ``okx, oky, okz`` are the origin's components in the permuted order;
-    returns ``(t, u, v)``, t = inf on a miss.
+    Returns ``(hit, t_scaled, det, w1, w2)``: whether the ray hits in (tmin, tmax), and the
+    scaled distance, determinant and barycentric weights of b and c, signed so that
+    ``det >= 0`` (t = t_scaled / det, u = w1 / det, v = w2 / det).
     """
-    az = corners[tri, kz] - okz
-    bz = corners[tri, 3 + kz] - okz
-    cz = corners[tri, 6 + kz] - okz
-    ax = (corners[tri, kx] - okx) - sx * az
-    ay = (corners[tri, ky] - oky) - sy * az
-    bx = (corners[tri, 3 + kx] - okx) - sx * bz
-    by = (corners[tri, 3 + ky] - oky) - sy * bz
-    cx = (corners[tri, 6 + kx] - okx) - sx * cz
-    cy = (corners[tri, 6 + ky] - oky) - sy * cz
+    az = a_z - okz
+    bz = b_z - okz
+    cz = c_z - okz
+    ax = (a_x - okx) - sx * az
+    ay = (a_y - oky) - sy * az
+    bx = (b_x - okx) - sx * bz
+    by = (b_y - oky) - sy * bz
+    cx = (c_x - okx) - sx * cz
+    cy = (c_y - oky) - sy * cz
     # Edge functions: w0 of edge (b, c) weighs vertex a, w1 of (c, a) weighs b, w2 of (a, b) weighs c.
     w0 = cx * by - cy * bx
     w1 = ax * cy - ay * cx
@@ -136,10 +132,31 @@ def intersect_triangle_watertight(tri, corners, okx, oky, okz, kx, ky, kz, sx, s
     negative = det < 0.0
     det = -det if negative else det
     t_scaled = -t_scaled if negative else t_scaled
-    if not (inside & (det != 0.0) & (t_scaled > tmin * det) & (t_scaled < tmax * det)):
-        return np.inf, 0.0, 0.0
     w1 = -w1 if negative else w1
     w2 = -w2 if negative else w2
+    return inside & (det != 0.0) & (t_scaled > tmin * det) & (t_scaled < tmax * det), t_scaled, det, w1, w2
+
+
+@njit(cache=True, inline="always")
+def intersect_triangle_watertight(tri, corners, okx, oky, okz, kx, ky, kz, sx, sy, sz, tmin, tmax):
+    """Watertight ray-triangle test (Woop, Benthin, Wald 2013), double-sided, edges inclusive.
+
+    The vertices move into ray space (origin at ``o``, direction sheared onto +z by
+    :func:`ray_shear`), where three 2D edge functions decide the hit
+    (:func:`watertight_decision`). A vertex shared
+    by two triangles gets bit-identical ray-space coordinates in both, and the edge
+    function of a shared edge is exactly the negation of the neighbour's
+    (``a*b - c*d`` against ``c*d - a*b``), so a ray through an edge is never missed by
+    both triangles; Möller–Trumbore gives no such guarantee. Float64 on float32
+    vertices. ``okx, oky, okz`` are the origin's components in the permuted order;
+    returns ``(t, u, v)``, t = inf on a miss.
+    """
+    hit, t_scaled, det, w1, w2 = watertight_decision(
+        corners[tri, kx], corners[tri, ky], corners[tri, kz], corners[tri, 3 + kx], corners[tri, 3 + ky],
+        corners[tri, 3 + kz], corners[tri, 6 + kx], corners[tri, 6 + ky], corners[tri, 6 + kz],
+        okx, oky, okz, sx, sy, sz, tmin, tmax)
+    if not hit:
+        return np.inf, 0.0, 0.0
     inv = 1.0 / det
     return t_scaled * inv, w1 * inv, w2 * inv
 
@@ -148,10 +165,10 @@ def intersect_triangle_watertight(tri, corners, okx, oky, okz, kx, ky, kz, sx, s
 def span_blocked(span_corners, n_refs, first, count, okx, oky, okz, kx, ky, kz, sx, sy, sz, tmin, tmax):
     """Whether any of the references ``first .. first + count - 1`` is hit in (tmin, tmax).
 
-    :func:`intersect_triangle_watertight`'s decision, the same arithmetic on the same numbers,
-    for every reference of the span with no early out and no branch per triangle, so the loop
-    runs on vector registers. ``span_corners`` holds the references' corners as a structure of
-    arrays (:attr:`kdtrace.kdtree.KDTree.span_corners`: row ``c`` of 9, length ``n_refs``, flat).
+    :func:`watertight_decision` for every reference of the span, with no early out and no
+    branch per triangle, so the loop runs on vector registers. ``span_corners`` holds the
+    references' corners as a structure of arrays (:attr:`kdtrace.kdtree.KDTree.span_corners`:
+    row ``c`` of 9, length ``n_refs``, flat).
     """
     hit = False
     akx = np.uint64(kx) * n_refs
@@ -160,25 +177,10 @@ def span_blocked(span_corners, n_refs, first, count, okx, oky, okz, kx, ky, kz, 
     b = np.uint64(3) * n_refs
     c = np.uint64(6) * n_refs
     for k in range(np.uint64(first), np.uint64(first) + np.uint64(count)):
-        az = span_corners[akz + k] - okz
-        bz = span_corners[b + akz + k] - okz
-        cz = span_corners[c + akz + k] - okz
-        ax = (span_corners[akx + k] - okx) - sx * az
-        ay = (span_corners[aky + k] - oky) - sy * az
-        bx = (span_corners[b + akx + k] - okx) - sx * bz
-        by = (span_corners[b + aky + k] - oky) - sy * bz
-        cx = (span_corners[c + akx + k] - okx) - sx * cz
-        cy = (span_corners[c + aky + k] - oky) - sy * cz
-        w0 = cx * by - cy * bx
-        w1 = ax * cy - ay * cx
-        w2 = bx * ay - by * ax
-        inside = not (((w0 < 0.0) | (w1 < 0.0) | (w2 < 0.0)) & ((w0 > 0.0) | (w1 > 0.0) | (w2 > 0.0)))
-        det = w0 + w1 + w2
-        t_scaled = (w0 * az + w1 * bz + w2 * cz) * sz
-        negative = det < 0.0
-        det = -det if negative else det
-        t_scaled = -t_scaled if negative else t_scaled
-        hit |= inside & (det != 0.0) & (t_scaled > tmin * det) & (t_scaled < tmax * det)
+        hit |= watertight_decision(
+            span_corners[akx + k], span_corners[aky + k], span_corners[akz + k], span_corners[b + akx + k],
+            span_corners[b + aky + k], span_corners[b + akz + k], span_corners[c + akx + k],
+            span_corners[c + aky + k], span_corners[c + akz + k], okx, oky, okz, sx, sy, sz, tmin, tmax)[0]
     return hit
 
 
