@@ -162,6 +162,34 @@ def intersect_triangle_watertight(tri, corners, okx, oky, okz, kx, ky, kz, sx, s
 
 
 @njit(cache=True, inline="always")
+def triangle_test_setup(watertight, ox, oy, oz, dx, dy, dz):
+    """Per-ray constants of the tree's triangle test, ``(okx, oky, okz, kx, ky, kz, sx, sy, sz)``:
+    the origin in the permuted order and the shear of :func:`ray_shear` for the watertight test,
+    the plain origin and placeholders for Möller–Trumbore."""
+    if watertight:
+        kx, ky, kz, sx, sy, sz = ray_shear(dx, dy, dz)
+        o = (ox, oy, oz)
+        return o[kx], o[ky], o[kz], kx, ky, kz, sx, sy, sz
+    return ox, oy, oz, 0, 1, 2, 0.0, 0.0, 0.0
+
+
+@njit(cache=True, inline="always")
+def intersect_tree_triangle(watertight, tri, corners, ox, oy, oz, dx, dy, dz, setup, tmin, tmax):
+    """``(t, u, v)`` of triangle ``tri`` by the tree's test (watertight or Möller–Trumbore), ``setup``
+    from :func:`triangle_test_setup`; t = inf on a miss."""
+    okx, oky, okz, kx, ky, kz, sx, sy, sz = setup
+    if watertight:
+        return intersect_triangle_watertight(tri, corners, okx, oky, okz, kx, ky, kz, sx, sy, sz, tmin, tmax)
+    return intersect_triangle(tri, corners, ox, oy, oz, dx, dy, dz, tmin, tmax)
+
+
+@njit(cache=True, inline="always")
+def no_spans(corners):
+    """An empty ``span_corners`` for :func:`trace_ray`: test triangles one by one."""
+    return corners.reshape(-1)[:0]
+
+
+@njit(cache=True, inline="always")
 def span_blocked(span_corners, n_refs, first, count, okx, oky, okz, kx, ky, kz, sx, sy, sz, tmin, tmax):
     """Whether any of the references ``first .. first + count - 1`` is hit in (tmin, tmax).
 
@@ -286,8 +314,8 @@ def trace_ray(
     ray[6] = 1.0 / dx if dx != 0.0 else np.inf
     ray[7] = 1.0 / dy if dy != 0.0 else np.inf
     ray[8] = 1.0 / dz if dz != 0.0 else np.inf
-    kx, ky, kz, sx, sy, sz = ray_shear(dx, dy, dz) if watertight else (0, 1, 2, 0.0, 0.0, 0.0)
-    okx, oky, okz = ray[kx], ray[ky], ray[kz]
+    setup = triangle_test_setup(watertight, ox, oy, oz, dx, dy, dz)
+    okx, oky, okz, kx, ky, kz, sx, sy, sz = setup
     spans = np.uint64(nodes.shape[0] >> 2)
     n_refs = np.uint64(refs.shape[0])
     vector_spans = any_hit and watertight and span_corners.shape[0] > 0
@@ -304,10 +332,7 @@ def trace_ray(
             for k in range(first, first + count):
                 tri = refs[np.uint64(k)]
                 tests += 1
-                if watertight:
-                    t, u, v = intersect_triangle_watertight(tri, corners, okx, oky, okz, kx, ky, kz, sx, sy, sz, tmin, best_t)
-                else:
-                    t, u, v = intersect_triangle(tri, corners, ox, oy, oz, dx, dy, dz, tmin, best_t)
+                t, u, v = intersect_tree_triangle(watertight, tri, corners, ox, oy, oz, dx, dy, dz, setup, tmin, best_t)
                 if t < best_t:
                     best_t = t
                     best_tri = tri
@@ -421,7 +446,7 @@ def _trace_rays(nodes, splits, refs, box, corners, origins, directions, tmin, tm
     """
     st_node, st_ent, st_ext, ray = ray_scratch()
     outputs = (out_t, out_tri, out_u, out_v, out_visited, out_tests)
-    one_by_one = corners.reshape(-1)[:0]  # no span_corners: the batch queries test triangles one by one
+    one_by_one = no_spans(corners)  # the batch queries test triangles one by one
     for i in range(first, end):
         ox, oy, oz = origins[i, 0], origins[i, 1], origins[i, 2]
         dx, dy, dz = directions[i, 0], directions[i, 1], directions[i, 2]

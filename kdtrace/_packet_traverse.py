@@ -30,6 +30,7 @@ from kdtrace._kdtree_traverse import (
     clip_to_box,
     decode_node,
     intersect_triangle,
+    no_spans,
     ray_scratch,
     ray_shear,
     store_hit,
@@ -404,7 +405,7 @@ def _trace_packets(nodes, splits, refs, box, corners, origins, directions, tmax,
         for r in range(m):
             i = start + r
             t, tri, u, v, visited, tests = trace_ray(
-                nodes, splits, refs, box, corners, corners.reshape(-1)[:0], org[r, 0], org[r, 1], org[r, 2],
+                nodes, splits, refs, box, corners, no_spans(corners), org[r, 0], org[r, 1], org[r, 2],
                 dirs[r, 0], dirs[r, 1], dirs[r, 2], 0.0, tmax[i], False, watertight, s_node, s_ent, s_ext, ray)
             store_hit(outputs, i, t, tri, u, v, visited, tests)
 

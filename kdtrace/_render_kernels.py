@@ -36,7 +36,7 @@ import numpy as np
 from numba import literally, njit, prange
 
 from kdtrace import _kdtree_build, _kdtree_layout, _kdtree_traverse, _packet_traverse, _stack
-from kdtrace._kdtree_traverse import intersect_triangle, intersect_triangle_watertight, ray_scratch, ray_shear, trace_ray
+from kdtrace._kdtree_traverse import intersect_tree_triangle, no_spans, ray_scratch, trace_ray, triangle_test_setup
 from kdtrace._packet_traverse import PACKET_BEST, PACKET_SIZE, PACKET_TRI, PACKET_U, PACKET_V, packet_scratch, trace_packet
 from kdtrace._stack import stack_empty
 from kdtrace.cache import drop_stale_kernel_cache
@@ -263,15 +263,10 @@ def last_ray_hit(emitters, sky, watertight, tree, emit_tri, ox, oy, oz, dx, dy, 
     best_t = np.inf
     best_tri = -1
     if emitters:
-        kx, ky, kz, sx, sy, sz = ray_shear(dx, dy, dz) if watertight else (0, 1, 2, 0.0, 0.0, 0.0)
-        o = (ox, oy, oz)
-        okx, oky, okz = o[kx], o[ky], o[kz]
+        setup = triangle_test_setup(watertight, ox, oy, oz, dx, dy, dz)
         for k in range(emit_tri.shape[0]):
             tri = emit_tri[k]
-            if watertight:
-                t, _, _ = intersect_triangle_watertight(tri, corners, okx, oky, okz, kx, ky, kz, sx, sy, sz, 0.0, best_t)
-            else:
-                t, _, _ = intersect_triangle(tri, corners, ox, oy, oz, dx, dy, dz, 0.0, best_t)
+            t, _, _ = intersect_tree_triangle(watertight, tri, corners, ox, oy, oz, dx, dy, dz, setup, 0.0, best_t)
             if t < best_t:
                 best_t = t
                 best_tri = tri
@@ -283,7 +278,7 @@ def last_ray_hit(emitters, sky, watertight, tree, emit_tri, ox, oy, oz, dx, dy, 
         return best_t, NO_RADIANCE
     # The escape query (no emitter hit, a sky) tests one by one: its rays mostly hit something, and
     # Crytek Sponza's frames were 4-5% slower with the vector test there (2026-12-05).
-    spans = span_corners if best_tri >= 0 else span_corners[:0]
+    spans = span_corners if best_tri >= 0 else no_spans(corners)
     _, blocker, _, _, _, _ = trace_ray(nodes, splits, refs, box, corners, spans, ox, oy, oz, dx, dy, dz, 0.0,
                                        best_t, True, watertight, st_node, st_ent, st_ext, ray)
     if blocker >= 0:

@@ -811,12 +811,10 @@ def scene_rows(kind: str, version: int, measure_scene: Callable[..., dict], conf
                 bar.write(f"{kind} {name}: reusing the row measured {saved['measured_at']} (pass fresh=True to measure again)")
                 rows.append(saved["row"])
                 continue
-        if not networks:
-            models.append(None)
         if not models:
-            bar.set_postfix_str("reconstruction networks")
+            bar.set_postfix_str("reconstruction networks" if networks else "")
             models.append(Reconstruction.load(names, recon, names, progress, blend_spp=blend_spp,
-                                              demodulated_scenes=demodulated_scenes))
+                                              demodulated_scenes=demodulated_scenes) if networks else None)
         load_before = os.getloadavg()[0]
         row = measure_scene(name, config, profile_name, models[0], bar)
         row["load_average"] = [load_before, os.getloadavg()[0]]
