@@ -22,7 +22,7 @@ from kdtrace._stack import stack_empty
 from kdtrace.cache import drop_stale_kernel_cache
 
 STACK_SIZE = 96
-#: Shortest span of references :func:`trace_ray` tests all at once (:func:`span_first_hit`) before
+#: Shortest span of references :func:`trace_ray` tests all at once (:func:`span_blocked`) before
 #: one by one: a span of one triangle has nothing to test side by side, and its vector test would
 #: be repeated one by one wherever it hits.
 MIN_VECTOR_SPAN = 2
@@ -194,29 +194,26 @@ def no_spans(corners):
 
 
 @njit(cache=True, inline="always")
-def span_first_hit(span_corners, n_refs, first, count, okx, oky, okz, kx, ky, kz, sx, sy, sz, tmin, tmax):
-    """Position in the span of references ``first .. first + count - 1`` of its first triangle hit
-    in (tmin, tmax); ``count`` if none is.
+def span_blocked(span_corners, n_refs, first, count, okx, oky, okz, kx, ky, kz, sx, sy, sz, tmin, tmax):
+    """Whether any of the references ``first .. first + count - 1`` is hit in (tmin, tmax).
 
     :func:`watertight_decision` for every reference of the span, with no early out and no
-    branch per triangle (the position is a minimum over the span), so the loop runs on vector
-    registers. ``span_corners`` holds the references' corners as a structure of arrays
-    (:attr:`kdtrace.kdtree.KDTree.span_corners`: row ``c`` of 9, length ``n_refs``, flat).
+    branch per triangle, so the loop runs on vector registers. ``span_corners`` holds the
+    references' corners as a structure of arrays (:attr:`kdtrace.kdtree.KDTree.span_corners`:
+    row ``c`` of 9, length ``n_refs``, flat).
     """
-    position = np.uint64(count)
+    hit = False
     akx = np.uint64(kx) * n_refs
     aky = np.uint64(ky) * n_refs
     akz = np.uint64(kz) * n_refs
     b = np.uint64(3) * n_refs
     c = np.uint64(6) * n_refs
-    for k in range(np.uint64(count)):
-        j = np.uint64(first) + k
-        hit = watertight_decision(
-            span_corners[akx + j], span_corners[aky + j], span_corners[akz + j], span_corners[b + akx + j],
-            span_corners[b + aky + j], span_corners[b + akz + j], span_corners[c + akx + j],
-            span_corners[c + aky + j], span_corners[c + akz + j], okx, oky, okz, sx, sy, sz, tmin, tmax)[0]
-        position = min(position, k if hit else position)
-    return np.int64(position)
+    for k in range(np.uint64(first), np.uint64(first) + np.uint64(count)):
+        hit |= watertight_decision(
+            span_corners[akx + k], span_corners[aky + k], span_corners[akz + k], span_corners[b + akx + k],
+            span_corners[b + aky + k], span_corners[b + akz + k], span_corners[c + akx + k],
+            span_corners[c + aky + k], span_corners[c + akz + k], okx, oky, okz, sx, sy, sz, tmin, tmax)[0]
+    return hit
 
 
 @njit(cache=True, inline="always")
@@ -295,12 +292,11 @@ def trace_ray(
 
     With the watertight test and a non-empty ``span_corners`` (the references' corners as a
     structure of arrays), a node's span of at least :data:`MIN_VECTOR_SPAN` triangles is first
-    asked by :func:`span_first_hit` where its first hit in (tmin, closest hit so far) is, all its
-    triangles at once, and tested one by one only from there: the same hit, the same counters,
-    and a span without a hit (most spans a ray passes: only the last holds its closest hit, and
-    a shadow ray's way to a light is mostly clear) costs no branch per triangle. Starting at the
-    first hit rather than re-testing a span that holds one: 1.02-1.06x frames, 1.01-1.09x
-    Table 1's rays (same process, 2026-12-05). Measured with and without, same process, 2026-12-05 (256x256, 8 spp, max_depth
+    asked by :func:`span_blocked` whether it holds any hit in (tmin, closest hit so far), all
+    its triangles at once, and tested one by one only where it does: the same hit, the same
+    counters, and a span without a hit (most spans a ray passes: only the last holds its
+    closest hit, and a shadow ray's way to a light is mostly clear) costs no branch per
+    triangle. Measured with and without, same process, 2026-12-05 (256x256, 8 spp, max_depth
     3, 2 threads): path-traced frames 1.18x faster on cbox-original, 1.22x on car and cbox-sphere,
     1.05x on bunny, Crytek Sponza within the noise; occlusion queries alone had given
     1.14-1.18x, closest-hit ones add the rest. Pass an empty array to test one by one (the oracle).
@@ -336,14 +332,10 @@ def trace_ray(
         visited += 1
         word, axis, first, count = decode_node(nodes, node, spans)
         if count > 0:
-            if vector_spans and count >= MIN_VECTOR_SPAN:
-                # The triangles before the span's first hit miss (tmin, best_t), and best_t only
-                # shrinks: testing them one by one would find nothing.
-                skip = span_first_hit(span_corners, n_refs, first, count, okx, oky, okz, kx, ky, kz, sx, sy, sz,
-                                      tmin, best_t)
-                tests += skip  # what testing them one by one counts
-                first += skip
-                count -= skip
+            if vector_spans and count >= MIN_VECTOR_SPAN and not span_blocked(
+                    span_corners, n_refs, first, count, okx, oky, okz, kx, ky, kz, sx, sy, sz, tmin, best_t):
+                tests += count  # what testing them one by one would have counted
+                count = 0
             for k in range(first, first + count):
                 tri = refs[np.uint64(k)]
                 tests += 1

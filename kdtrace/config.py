@@ -52,7 +52,7 @@ class KDTreeConfig:
         build parameter: trees are cached and shared across both.
     vector_spans : bool
         Watertight queries test a node's triangles all at once before one by one (same hits and
-        counters; ``kdtrace._kdtree_traverse.span_first_hit``). Not a build parameter either.
+        counters; ``kdtrace._kdtree_traverse.span_blocked``). Not a build parameter either.
     """
 
     traversal_cost: float = 1.0

@@ -95,8 +95,8 @@ class KDTree:
     def span_corners(self) -> np.ndarray:
         """The references' corners as a structure of arrays, float32, flat: element ``c * R + k``
         is coordinate ``c`` (9 per triangle, as in ``corners``) of reference ``k`` of ``R``, so a
-        node's span of references is 9 contiguous runs (the traversal's vector test,
-        :func:`kdtrace._kdtree_traverse.span_first_hit`). 36 bytes a reference, made on first use."""
+        node's span of references is 9 contiguous runs (the path tracer's vector occlusion test,
+        :func:`kdtrace._kdtree_traverse.span_blocked`). 36 bytes a reference, made on first use."""
         return np.ascontiguousarray(self.corners[self.refs].T).reshape(-1)
 
     def traversal_spans(self) -> np.ndarray:

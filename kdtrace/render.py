@@ -349,7 +349,7 @@ def render(
         traces the last ray's closest hit, the oracle; the image is the same.
     vector_spans : bool, optional
         Ray queries test a node's triangles all at once before one by one
-        (:func:`kdtrace._kdtree_traverse.span_first_hit`; watertight trees only); default: the
+        (:func:`kdtrace._kdtree_traverse.span_blocked`; watertight trees only); default: the
         tree's ``vector_spans`` (``[kdtree] vector_spans``). False tests them one by one, the
         oracle; the image is the same.
 

@@ -465,7 +465,7 @@ def test_stress_many_examples(case, config, seed, ray_kind, exponent, tiny):
 def test_last_ray_shortcut_and_vector_spans_render_the_oracles_image(case, config, seed, sky):
     """The path tracer's last ray against the emitters, then an any-hit query
     (:func:`kdtrace._render_kernels.last_ray_hit`), and ray queries testing a node's
-    triangles all at once (:func:`kdtrace._kdtree_traverse.span_first_hit`) give the image of the
+    triangles all at once (:func:`kdtrace._kdtree_traverse.span_blocked`) give the image of the
     full closest-hit walk and one-by-one tests bit for bit: random emitting triangles (front and
     back faces), with and without a sky, any scale and offset, every tree configuration.
     Triangles are in general position, so no occluder ties an emitter's distance (the one case
