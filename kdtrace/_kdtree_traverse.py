@@ -22,10 +22,6 @@ from kdtrace._stack import stack_empty
 from kdtrace.cache import drop_stale_kernel_cache
 
 STACK_SIZE = 96
-#: Shortest span of references :func:`trace_ray` tests all at once (:func:`span_blocked`) before
-#: one by one: a span of one triangle has nothing to test side by side, and its vector test would
-#: be repeated one by one wherever it hits.
-MIN_VECTOR_SPAN = 2
 #: Length of a traversal's per-ray scratch buffer (origin, direction, 1 / direction).
 RAY_SCRATCH = 9
 #: Relative widening of every ray interval a box or split plane yields, 1 + 2 gamma(3) in
@@ -290,16 +286,13 @@ def trace_ray(
     from its end (the far child of a split first): the answer, hit or no hit, is the same,
     and the triangle returned is any one in (tmin, tmax).
 
-    With the watertight test and a non-empty ``span_corners`` (the references' corners as a
-    structure of arrays), a node's span of at least :data:`MIN_VECTOR_SPAN` triangles is first
-    asked by :func:`span_blocked` whether it holds any hit in (tmin, closest hit so far), all
-    its triangles at once, and tested one by one only where it does: the same hit, the same
-    counters, and a span without a hit (most spans a ray passes: only the last holds its
-    closest hit, and a shadow ray's way to a light is mostly clear) costs no branch per
-    triangle. Measured with and without, same process, 2026-12-05 (256x256, 8 spp, max_depth
-    3, 2 threads): path-traced frames 1.18x faster on cbox-original, 1.22x on car and cbox-sphere,
-    1.05x on bunny, Crytek Sponza within the noise; occlusion queries alone had given
-    1.14-1.18x, closest-hit ones add the rest. Pass an empty array to test one by one (the oracle).
+    An any-hit query with the watertight test and a non-empty ``span_corners`` (the
+    references' corners as a structure of arrays) first asks :func:`span_blocked` whether a
+    node's span holds any hit, all its triangles at once, and tests them one by one only where
+    it does: the same hit, the same counters, and a span without a hit (most of them on a
+    shadow ray's way to a light) costs no branch per triangle. The path tracer's occlusion
+    queries ran 1.15-1.19x faster so at max_depth 3 (cbox-original, cbox-sphere, car; Crytek
+    Sponza 1.00x), same images, 2026-12-05. Pass an empty array to test one by one.
     """
     best_t = tmax
     best_tri = -1
@@ -325,15 +318,15 @@ def trace_ray(
     okx, oky, okz, kx, ky, kz, sx, sy, sz = setup
     spans = np.uint64(nodes.shape[0] >> 2)
     n_refs = np.uint64(refs.shape[0])
-    vector_spans = watertight and span_corners.shape[0] > 0
+    vector_spans = any_hit and watertight and span_corners.shape[0] > 0
     node = np.uint64(0)
     sp = 0
     while True:
         visited += 1
         word, axis, first, count = decode_node(nodes, node, spans)
         if count > 0:
-            if vector_spans and count >= MIN_VECTOR_SPAN and not span_blocked(
-                    span_corners, n_refs, first, count, okx, oky, okz, kx, ky, kz, sx, sy, sz, tmin, best_t):
+            if vector_spans and not span_blocked(span_corners, n_refs, first, count, okx, oky, okz, kx, ky, kz,
+                                                 sx, sy, sz, tmin, best_t):
                 tests += count  # what testing them one by one would have counted
                 count = 0
             for k in range(first, first + count):
@@ -440,8 +433,8 @@ def store_hit(outputs, i, t, tri, u, v, visited, tests):
 
 
 @njit(cache=True, _nrt=False)
-def _trace_rays(nodes, splits, refs, box, corners, span_corners, origins, directions, tmin, tmax, any_hit, watertight,
-                first, end, out_t, out_tri, out_u, out_v, out_visited, out_tests):
+def _trace_rays(nodes, splits, refs, box, corners, origins, directions, tmin, tmax, any_hit, watertight, first, end,
+                out_t, out_tri, out_u, out_v, out_visited, out_tests):
     """Rays ``first .. end - 1`` of :func:`trace_batch` (one parallel chunk).
 
     :func:`trace_ray` is inlined once with ``any_hit`` a constant True and once False, so
@@ -453,15 +446,16 @@ def _trace_rays(nodes, splits, refs, box, corners, span_corners, origins, direct
     """
     st_node, st_ent, st_ext, ray = ray_scratch()
     outputs = (out_t, out_tri, out_u, out_v, out_visited, out_tests)
+    one_by_one = no_spans(corners)  # the batch queries test triangles one by one
     for i in range(first, end):
         ox, oy, oz = origins[i, 0], origins[i, 1], origins[i, 2]
         dx, dy, dz = directions[i, 0], directions[i, 1], directions[i, 2]
         if any_hit:
-            t, tri, u, v, visited, tests = trace_ray(nodes, splits, refs, box, corners, span_corners, ox, oy, oz,
+            t, tri, u, v, visited, tests = trace_ray(nodes, splits, refs, box, corners, one_by_one, ox, oy, oz,
                                                      dx, dy, dz, tmin[i], tmax[i], True, watertight, st_node, st_ent,
                                                      st_ext, ray)
         else:
-            t, tri, u, v, visited, tests = trace_ray(nodes, splits, refs, box, corners, span_corners, ox, oy, oz,
+            t, tri, u, v, visited, tests = trace_ray(nodes, splits, refs, box, corners, one_by_one, ox, oy, oz,
                                                      dx, dy, dz, tmin[i], tmax[i], False, watertight, st_node, st_ent,
                                                      st_ext, ray)
         store_hit(outputs, i, t, tri, u, v, visited, tests)
@@ -469,18 +463,16 @@ def _trace_rays(nodes, splits, refs, box, corners, span_corners, origins, direct
 
 @njit(cache=True, parallel=True)
 def trace_batch(
-    nodes, splits, refs, box, corners, span_corners,
+    nodes, splits, refs, box, corners,
     origins, directions, tmin, tmax, any_hit, watertight, n_chunks,
     out_t, out_tri, out_u, out_v, out_visited, out_tests,
 ):
-    """Trace every ray, in parallel over chunks of rays (one stack per chunk, :func:`_trace_rays`);
-    ``span_corners`` as in :func:`trace_ray` (empty: triangles one by one)."""
+    """Trace every ray, in parallel over chunks of rays (one stack per chunk, :func:`_trace_rays`)."""
     n = origins.shape[0]
     chunk = (n + n_chunks - 1) // n_chunks
     for c in prange(n_chunks):
-        _trace_rays(nodes, splits, refs, box, corners, span_corners, origins, directions, tmin, tmax, any_hit,
-                    watertight, c * chunk, min(n, (c + 1) * chunk), out_t, out_tri, out_u, out_v, out_visited,
-                    out_tests)
+        _trace_rays(nodes, splits, refs, box, corners, origins, directions, tmin, tmax, any_hit, watertight,
+                    c * chunk, min(n, (c + 1) * chunk), out_t, out_tri, out_u, out_v, out_visited, out_tests)
 
 
 # numba's cache checks this file only; recompile when a module inlined from here changes.

@@ -56,9 +56,6 @@ class KDTree:
     variant : {"naive", "local"}
     triangle_test : {"watertight", "moller-trumbore"}
         Ray-triangle test of the queries (``KDTreeConfig.triangle_test``).
-    vector_spans : bool
-        Queries test a node's triangles all at once before one by one (``KDTreeConfig.vector_spans``;
-        watertight trees only, :func:`kdtrace._kdtree_traverse.trace_ray`).
     stats : dict
         nodes, leaves, empty_leaves, max_depth, triangle_references (leaf + interior),
         leaf_references, interior_references, sah_cost, tree_bytes (the build's arrays: 17 bytes
@@ -70,11 +67,10 @@ class KDTree:
     """
 
     def __init__(self, scene: Scene, variant: str, arrays: dict[str, np.ndarray], stats: dict,
-                 triangle_test: str = "watertight", vector_spans: bool = True):
+                 triangle_test: str = "watertight"):
         self.variant = variant
         self.triangle_test = triangle_test
         self.watertight = triangle_test == "watertight"
-        self.vector_spans = vector_spans and self.watertight
         self.node_meta = arrays["node_meta"]
         self.node_split = arrays["node_split"]
         self.node_start = arrays["node_start"]
@@ -99,11 +95,6 @@ class KDTree:
         :func:`kdtrace._kdtree_traverse.span_blocked`). 36 bytes a reference, made on first use."""
         return np.ascontiguousarray(self.corners[self.refs].T).reshape(-1)
 
-    def traversal_spans(self) -> np.ndarray:
-        """The ``span_corners`` argument of the traversal kernels: :attr:`span_corners` with
-        :attr:`vector_spans`, else empty (triangles tested one by one)."""
-        return self.span_corners if self.vector_spans else np.zeros(0, np.float32)
-
     def __repr__(self) -> str:
         return f"KDTree(variant={self.variant!r}, nodes={self.stats['nodes']}, references={self.stats['triangle_references']})"
 
@@ -127,8 +118,8 @@ class KDTree:
                 self.watertight, packet_kernels.PACKET_SIZE, n_chunks, *outputs)
         else:
             traverse_kernels.trace_batch(
-                self.node_words, self.node_splits, self.refs, self.box, self.corners, self.traversal_spans(), origins,
-                directions, tmin, tmax, any_hit, self.watertight, n_chunks, *outputs)
+                self.node_words, self.node_splits, self.refs, self.box, self.corners, origins, directions, tmin, tmax,
+                any_hit, self.watertight, n_chunks, *outputs)
         self.last_counters = TraceCounters(visited, tests)
         return out_t, out_tri, out_u, out_v
 
@@ -369,9 +360,8 @@ def build_kdtree(
             f"scene {scene.name!r}: {zero_area} zero-area triangles left out of the KD-tree",
             stacklevel=2,
         )
-    # The triangle test and the vector spans are traversal choices: the trees are the same.
-    build_parameters = {k: v for k, v in dataclasses.asdict(config).items()
-                        if k not in ("triangle_test", "vector_spans")}
+    # The triangle test is a traversal choice: trees built with either are the same.
+    build_parameters = {k: v for k, v in dataclasses.asdict(config).items() if k != "triangle_test"}
     key = content_key("kdtree", BUILDER_VERSION, variant, scene.geometry_hash(), build_parameters)
     path = cache_root() / "kdtrees" / f"{scene.name}-{variant}-{key[:20]}.npz"
     if cache:
@@ -379,9 +369,9 @@ def build_kdtree(
         if loaded is not None and set(_TREE_ARRAYS) <= set(loaded[0]):
             arrays, stats = loaded
             stats = dict(stats, cache_hit=True)
-            return KDTree(scene, variant, arrays, stats, config.triangle_test, config.vector_spans)
+            return KDTree(scene, variant, arrays, stats, config.triangle_test)
     arrays, stats = _build_arrays(scene, variant, config)
     stats["cache_hit"] = False
     if cache:
         save_npz(path, arrays, stats)
-    return KDTree(scene, variant, arrays, stats, config.triangle_test, config.vector_spans)
+    return KDTree(scene, variant, arrays, stats, config.triangle_test)

@@ -22,7 +22,6 @@ ours is ``wrong`` and fails the test whatever its geometry.
 
 from __future__ import annotations
 
-import copy
 import os
 import warnings
 
@@ -90,27 +89,6 @@ def build_trees(scene: Scene, config) -> dict:
         return {variant: build_kdtree(scene, variant, config, cache=False) for variant in VARIANTS}
 
 
-def one_by_one(tree):
-    """The same tree, its queries testing triangles one by one (no vector span test)."""
-    scalar = copy.copy(tree)
-    scalar.vector_spans = False
-    return scalar
-
-
-def check_same_as_one_by_one(tree, query: str, ours, *args) -> None:
-    """With vector spans, ``tree.<query>(*args)`` answered ``ours`` with the counters of one-by-one
-    tests, bit for bit (the vector test only skips spans without a hit)."""
-    if not tree.vector_spans:
-        return
-    counters = tree.last_counters
-    scalar = one_by_one(tree)
-    theirs = getattr(scalar, query)(*args)
-    for a, b in zip(*((answer,) if query == "occluded" else answer for answer in (ours, theirs)), strict=True):
-        np.testing.assert_array_equal(a, b, err_msg=f"{query} differs from one-by-one tests")
-    np.testing.assert_array_equal(counters.nodes_visited, scalar.last_counters.nodes_visited)
-    np.testing.assert_array_equal(counters.triangle_tests, scalar.last_counters.triangle_tests)
-
-
 def oracle(scene: Scene, origins, directions, tmin=0.0, tmax=np.inf):
     return intersect_brute_force(
         scene.vertices, scene.triangles, origins, directions, tmin=tmin, tmax=tmax, skip=scene.degenerate_mask()
@@ -170,7 +148,6 @@ def check_intersect(case: StressScene, trees: dict, origins, directions, tmin=0.
     geometry = TriangleGeometry.of(scene)
     for variant, tree in trees.items():
         ours = tree.intersect(origins, directions, tmin, tmax)
-        check_same_as_one_by_one(tree, "intersect", ours, origins, directions, tmin, tmax)
         check_sane(scene, ours, tmin, tmax)
         labels = compare_hits(scene, origins, directions, ours, theirs, tmax=tmax, geometry=geometry).labels
         bad = np.flatnonzero(np.isin(labels, FAILING))
@@ -197,7 +174,6 @@ def check_occluded(case: StressScene, trees: dict, origins, directions, tmax) ->
     geometry = TriangleGeometry.of(scene)
     for variant, tree in trees.items():
         blocked = tree.occluded(origins, directions, tmax)
-        check_same_as_one_by_one(tree, "occluded", blocked, origins, directions, tmax)
         assert blocked.dtype == bool and blocked.shape == expected.shape
         labels = compare_occlusion(scene, origins, directions, tmax, blocked, expected, geometry=geometry).labels
         bad = np.flatnonzero(np.isin(labels, FAILING))
@@ -462,9 +438,9 @@ def test_stress_many_examples(case, config, seed, ray_kind, exponent, tiny):
 @given(case=stress_scenes(kinds=("soup", "slivers", "heightfield", "big_and_small"), max_triangles=300,
                           allow_duplicates=False),
        config=tree_configs, seed=st.integers(0, 2**16), sky=st.booleans())
-def test_last_ray_shortcut_and_vector_spans_render_the_oracles_image(case, config, seed, sky):
+def test_last_ray_shortcut_and_vector_occlusion_render_the_oracles_image(case, config, seed, sky):
     """The path tracer's last ray against the emitters, then an any-hit query
-    (:func:`kdtrace._render_kernels.last_ray_hit`), and ray queries testing a node's
+    (:func:`kdtrace._render_kernels.last_ray_hit`), and occlusion queries testing a node's
     triangles all at once (:func:`kdtrace._kdtree_traverse.span_blocked`) give the image of the
     full closest-hit walk and one-by-one tests bit for bit: random emitting triangles (front and
     back faces), with and without a sky, any scale and offset, every tree configuration.
@@ -490,6 +466,6 @@ def test_last_ray_shortcut_and_vector_spans_render_the_oracles_image(case, confi
         tree = build_kdtree(scene, "local", config=config)
         for max_depth in (2, 3):
             full, shortcut = (render(scene, spp=2, max_depth=max_depth, seed=seed, tree=tree, last_ray_shortcut=flag,
-                                     vector_spans=flag) for flag in (False, True))
+                                     vector_occlusion=flag) for flag in (False, True))
             assert np.array_equal(full.rgb, shortcut.rgb), f"{case}, max_depth {max_depth}"
             assert np.array_equal(full.variance, shortcut.variance), f"{case}, max_depth {max_depth}"
