@@ -230,6 +230,7 @@ def _pack(scene: Scene, tree: KDTree, vector_occlusion: bool) -> dict[str, np.nd
         "box": tree.box, "corners": tree.corners,
         "span_corners": tree.span_corners if vector_occlusion else np.zeros(0, np.float32),
         "watertight": tree.watertight, "tri_mat": scene.material_ids,
+        "tri_gnormal": kernels.geometric_normals(tree.corners),
         "tri_normals": np.ascontiguousarray(tri_normals), "tri_uv": np.ascontiguousarray(tri_uv),
         "mat_kind": np.array([_KINDS[m.kind] for m in scene.materials], np.int32),
         "mat_albedo": np.array([m.albedo for m in scene.materials], np.float64),

@@ -84,6 +84,23 @@ def test_rng_is_uniform_and_keyed():
     assert kernels.uniform(key, 5) == kernels.uniform(np.uint64(kernels.sample_key(np.uint64(SEED), 17, 3)), 5)
 
 
+def test_precomputed_geometric_normals_are_the_ones_computed_at_a_hit():
+    """The path tracer reads each triangle's unit normal from ``geometric_normals``: the same
+    numbers as :func:`geometric_normal` at a hit, bit for bit, and numpy's cross product to
+    rounding; NaN for a zero-area triangle."""
+    scene = load_scene("crytek-sponza")
+    corners = np.ascontiguousarray(scene.vertices[scene.triangles].reshape(-1, 9))
+    table = kernels.geometric_normals(corners)
+    v = scene.vertices[scene.triangles].astype(np.float64)
+    cross = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
+    area = np.linalg.norm(cross, axis=1)
+    assert (area == 0).any() and np.isnan(table[area == 0]).all()
+    picked = np.random.default_rng(5).choice(np.flatnonzero(area > 0), 500, replace=False)
+    at_hit = np.array([kernels.geometric_normal(corners, int(tri)) for tri in picked])
+    assert np.array_equal(table[picked], at_hit)
+    np.testing.assert_allclose(table[area > 0], cross[area > 0] / area[area > 0, None], rtol=0, atol=1e-12)
+
+
 def test_camera_matches_numpy_pinhole(cbox):
     from kdtrace.render import _camera_array
 
