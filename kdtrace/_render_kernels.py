@@ -265,6 +265,7 @@ def last_ray_hit(emitters, sky, watertight, tree, emit_tri, tri_gnormal, ox, oy,
     hit anything at all? A ray that meets no emitter in a scene without sky, or meets the
     back of one, needs no traversal. Any hit stops at the first occluder, walking from the
     segment's far end, so it is also cheaper than the closest-hit walk it replaces.
+    ``tri_gnormal`` holds the triangles' unit normals (:func:`geometric_normals`).
 
     The triangle tests are those of :func:`kdtrace._kdtree_traverse.trace_ray`, so the
     emitter's ``t`` is bit for bit the closest-hit walk's. Returns ``(t, tri)`` with ``tri``
