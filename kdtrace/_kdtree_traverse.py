@@ -190,21 +190,23 @@ def no_spans(corners):
 
 
 @njit(cache=True, inline="always")
-def span_blocked(span_corners, n_refs, first, count, okx, oky, okz, kx, ky, kz, sx, sy, sz, tmin, tmax):
-    """Whether any of the references ``first .. first + count - 1`` is hit in (tmin, tmax).
+def span_blocked(span_corners, first, count, okx, oky, okz, kx, ky, kz, sx, sy, sz, tmin, tmax):
+    """Whether any of the references ``first .. first + count - 1`` (one node's span) is hit in
+    (tmin, tmax).
 
     :func:`watertight_decision` for every reference of the span, with no early out and no
-    branch per triangle, so the loop runs on vector registers. ``span_corners`` holds the
-    references' corners as a structure of arrays (:attr:`kdtrace.kdtree.KDTree.span_corners`:
-    row ``c`` of 9, length ``n_refs``, flat).
+    branch per triangle, so the loop runs on vector registers. ``span_corners`` holds each
+    span's corners as a block of 9 runs of ``count`` (:attr:`kdtrace.kdtree.KDTree.span_corners`).
     """
     hit = False
-    akx = np.uint64(kx) * n_refs
-    aky = np.uint64(ky) * n_refs
-    akz = np.uint64(kz) * n_refs
-    b = np.uint64(3) * n_refs
-    c = np.uint64(6) * n_refs
-    for k in range(np.uint64(first), np.uint64(first) + np.uint64(count)):
+    n = np.uint64(count)
+    block = np.uint64(9) * np.uint64(first)
+    akx = block + np.uint64(kx) * n
+    aky = block + np.uint64(ky) * n
+    akz = block + np.uint64(kz) * n
+    b = np.uint64(3) * n
+    c = np.uint64(6) * n
+    for k in range(n):
         hit |= watertight_decision(
             span_corners[akx + k], span_corners[aky + k], span_corners[akz + k], span_corners[b + akx + k],
             span_corners[b + aky + k], span_corners[b + akz + k], span_corners[c + akx + k],
@@ -317,7 +319,6 @@ def trace_ray(
     setup = triangle_test_setup(watertight, ox, oy, oz, dx, dy, dz)
     okx, oky, okz, kx, ky, kz, sx, sy, sz = setup
     spans = np.uint64(nodes.shape[0] >> 2)
-    n_refs = np.uint64(refs.shape[0])
     vector_spans = any_hit and watertight and span_corners.shape[0] > 0
     node = np.uint64(0)
     sp = 0
@@ -325,8 +326,8 @@ def trace_ray(
         visited += 1
         word, axis, first, count = decode_node(nodes, node, spans)
         if count > 0:
-            if vector_spans and not span_blocked(span_corners, n_refs, first, count, okx, oky, okz, kx, ky, kz,
-                                                 sx, sy, sz, tmin, best_t):
+            if vector_spans and not span_blocked(span_corners, first, count, okx, oky, okz, kx, ky, kz, sx, sy, sz,
+                                                 tmin, best_t):
                 tests += count  # what testing them one by one would have counted
                 count = 0
             for k in range(first, first + count):
@@ -433,8 +434,8 @@ def store_hit(outputs, i, t, tri, u, v, visited, tests):
 
 
 @njit(cache=True, _nrt=False)
-def _trace_rays(nodes, splits, refs, box, corners, origins, directions, tmin, tmax, any_hit, watertight, first, end,
-                out_t, out_tri, out_u, out_v, out_visited, out_tests):
+def _trace_rays(nodes, splits, refs, box, corners, span_corners, origins, directions, tmin, tmax, any_hit, watertight,
+                first, end, out_t, out_tri, out_u, out_v, out_visited, out_tests):
     """Rays ``first .. end - 1`` of :func:`trace_batch` (one parallel chunk).
 
     :func:`trace_ray` is inlined once with ``any_hit`` a constant True and once False, so
@@ -446,16 +447,15 @@ def _trace_rays(nodes, splits, refs, box, corners, origins, directions, tmin, tm
     """
     st_node, st_ent, st_ext, ray = ray_scratch()
     outputs = (out_t, out_tri, out_u, out_v, out_visited, out_tests)
-    one_by_one = no_spans(corners)  # the batch queries test triangles one by one
     for i in range(first, end):
         ox, oy, oz = origins[i, 0], origins[i, 1], origins[i, 2]
         dx, dy, dz = directions[i, 0], directions[i, 1], directions[i, 2]
         if any_hit:
-            t, tri, u, v, visited, tests = trace_ray(nodes, splits, refs, box, corners, one_by_one, ox, oy, oz,
+            t, tri, u, v, visited, tests = trace_ray(nodes, splits, refs, box, corners, span_corners, ox, oy, oz,
                                                      dx, dy, dz, tmin[i], tmax[i], True, watertight, st_node, st_ent,
                                                      st_ext, ray)
         else:
-            t, tri, u, v, visited, tests = trace_ray(nodes, splits, refs, box, corners, one_by_one, ox, oy, oz,
+            t, tri, u, v, visited, tests = trace_ray(nodes, splits, refs, box, corners, span_corners, ox, oy, oz,
                                                      dx, dy, dz, tmin[i], tmax[i], False, watertight, st_node, st_ent,
                                                      st_ext, ray)
         store_hit(outputs, i, t, tri, u, v, visited, tests)
@@ -463,16 +463,18 @@ def _trace_rays(nodes, splits, refs, box, corners, origins, directions, tmin, tm
 
 @njit(cache=True, parallel=True)
 def trace_batch(
-    nodes, splits, refs, box, corners,
+    nodes, splits, refs, box, corners, span_corners,
     origins, directions, tmin, tmax, any_hit, watertight, n_chunks,
     out_t, out_tri, out_u, out_v, out_visited, out_tests,
 ):
-    """Trace every ray, in parallel over chunks of rays (one stack per chunk, :func:`_trace_rays`)."""
+    """Trace every ray, in parallel over chunks of rays (one stack per chunk, :func:`_trace_rays`);
+    ``span_corners`` as in :func:`trace_ray` (empty: triangles one by one)."""
     n = origins.shape[0]
     chunk = (n + n_chunks - 1) // n_chunks
     for c in prange(n_chunks):
-        _trace_rays(nodes, splits, refs, box, corners, origins, directions, tmin, tmax, any_hit, watertight,
-                    c * chunk, min(n, (c + 1) * chunk), out_t, out_tri, out_u, out_v, out_visited, out_tests)
+        _trace_rays(nodes, splits, refs, box, corners, span_corners, origins, directions, tmin, tmax, any_hit,
+                    watertight, c * chunk, min(n, (c + 1) * chunk), out_t, out_tri, out_u, out_v, out_visited,
+                    out_tests)
 
 
 # numba's cache checks this file only; recompile when a module inlined from here changes.

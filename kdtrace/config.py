@@ -50,6 +50,10 @@ class KDTreeConfig:
         Ray-triangle test of the traversal: ``"watertight"`` (Woop, Benthin, Wald 2013;
         no ray slips between triangles sharing an edge) or ``"moller-trumbore"``. Not a
         build parameter: trees are cached and shared across both.
+    vector_occlusion : bool
+        Occlusion (any-hit) queries of watertight trees test a node's triangles all at once before
+        one by one (same answers and counters; ``kdtrace._kdtree_traverse.span_blocked``). Not a
+        build parameter either.
     """
 
     traversal_cost: float = 1.0
@@ -62,6 +66,7 @@ class KDTreeConfig:
     split_candidates: str = "bounds"
     clip_triangles: bool = False
     triangle_test: str = "watertight"
+    vector_occlusion: bool = True
 
     def __post_init__(self) -> None:
         if self.traversal_cost < 0 or self.intersection_cost <= 0:
@@ -215,9 +220,6 @@ class RenderConfig:
         Trace a path's last ray against the emitter triangles one by one, and the tree only
         for occlusion, when the scene has at most this many emitter triangles (same image;
         ``kdtrace._render_kernels.last_ray_hit``); 0 turns it off.
-    vector_occlusion : bool
-        The path tracer's occlusion queries test a node's triangles all at once before one by
-        one (same image; ``kdtrace._kdtree_traverse.span_blocked``).
     """
 
     spp: int = 4
@@ -228,7 +230,6 @@ class RenderConfig:
     eye_separation: float = 0.065
     camera_packets: bool = True
     last_ray_max_emitters: int = 16
-    vector_occlusion: bool = True
 
     def __post_init__(self) -> None:
         if self.last_ray_max_emitters < 0:

@@ -56,6 +56,9 @@ class KDTree:
     variant : {"naive", "local"}
     triangle_test : {"watertight", "moller-trumbore"}
         Ray-triangle test of the queries (``KDTreeConfig.triangle_test``).
+    vector_occlusion : bool
+        Occlusion queries test a node's triangles all at once before one by one
+        (``KDTreeConfig.vector_occlusion``; watertight trees only).
     stats : dict
         nodes, leaves, empty_leaves, max_depth, triangle_references (leaf + interior),
         leaf_references, interior_references, sah_cost, tree_bytes (the build's arrays: 17 bytes
@@ -67,10 +70,11 @@ class KDTree:
     """
 
     def __init__(self, scene: Scene, variant: str, arrays: dict[str, np.ndarray], stats: dict,
-                 triangle_test: str = "watertight"):
+                 triangle_test: str = "watertight", vector_occlusion: bool = True):
         self.variant = variant
         self.triangle_test = triangle_test
         self.watertight = triangle_test == "watertight"
+        self.vector_occlusion = vector_occlusion and self.watertight
         self.node_meta = arrays["node_meta"]
         self.node_split = arrays["node_split"]
         self.node_start = arrays["node_start"]
@@ -89,11 +93,31 @@ class KDTree:
 
     @functools.cached_property
     def span_corners(self) -> np.ndarray:
-        """The references' corners as a structure of arrays, float32, flat: element ``c * R + k``
-        is coordinate ``c`` (9 per triangle, as in ``corners``) of reference ``k`` of ``R``, so a
-        node's span of references is 9 contiguous runs (the path tracer's vector occlusion test,
-        :func:`kdtrace._kdtree_traverse.span_blocked`). 36 bytes a reference, made on first use."""
-        return np.ascontiguousarray(self.corners[self.refs].T).reshape(-1)
+        """The references' corners, float32, flat, one block per node's span of references (the
+        spans of leaves and of local-branch interior nodes partition ``refs``): the span
+        ``first .. first + count - 1`` holds coordinate ``c`` (9 per triangle, as in ``corners``)
+        of its ``j``-th reference at ``9 first + c count + j``. So the vector occlusion test
+        (:func:`kdtrace._kdtree_traverse.span_blocked`) reads a span as 9 runs side by side in
+        ``36 count`` contiguous bytes; one run per coordinate over all references had spread a
+        span over 9 cache lines, and made the bunny's shadow rays slower, not faster.
+        36 bytes a reference, made on first use."""
+        spans = np.flatnonzero(self.node_count > 0)
+        spans = spans[np.argsort(self.node_start[spans], kind="stable")]  # in the order of refs
+        counts = self.node_count[spans].astype(np.int64)
+        span_first = np.repeat(self.node_start[spans].astype(np.int64), counts)
+        span_count = np.repeat(counts, counts)
+        position = np.arange(len(self.refs)) - span_first
+        if len(self.refs) and (position.min() < 0 or (position >= span_count).any()):
+            raise AssertionError("the nodes' spans do not partition the references in order")
+        out = np.empty(9 * len(self.refs), np.float32)
+        for c in range(9):
+            out[9 * span_first + c * span_count + position] = self.corners[self.refs, c]
+        return out
+
+    def occlusion_spans(self) -> np.ndarray:
+        """The ``span_corners`` argument of the traversal kernels: :attr:`span_corners` with
+        :attr:`vector_occlusion`, else empty (triangles tested one by one)."""
+        return self.span_corners if self.vector_occlusion else np.zeros(0, np.float32)
 
     def __repr__(self) -> str:
         return f"KDTree(variant={self.variant!r}, nodes={self.stats['nodes']}, references={self.stats['triangle_references']})"
@@ -118,8 +142,8 @@ class KDTree:
                 self.watertight, packet_kernels.PACKET_SIZE, n_chunks, *outputs)
         else:
             traverse_kernels.trace_batch(
-                self.node_words, self.node_splits, self.refs, self.box, self.corners, origins, directions, tmin, tmax,
-                any_hit, self.watertight, n_chunks, *outputs)
+                self.node_words, self.node_splits, self.refs, self.box, self.corners, self.occlusion_spans(), origins,
+                directions, tmin, tmax, any_hit, self.watertight, n_chunks, *outputs)
         self.last_counters = TraceCounters(visited, tests)
         return out_t, out_tri, out_u, out_v
 
@@ -360,8 +384,9 @@ def build_kdtree(
             f"scene {scene.name!r}: {zero_area} zero-area triangles left out of the KD-tree",
             stacklevel=2,
         )
-    # The triangle test is a traversal choice: trees built with either are the same.
-    build_parameters = {k: v for k, v in dataclasses.asdict(config).items() if k != "triangle_test"}
+    # The triangle test and the vector occlusion test are traversal choices: the trees are the same.
+    build_parameters = {k: v for k, v in dataclasses.asdict(config).items()
+                        if k not in ("triangle_test", "vector_occlusion")}
     key = content_key("kdtree", BUILDER_VERSION, variant, scene.geometry_hash(), build_parameters)
     path = cache_root() / "kdtrees" / f"{scene.name}-{variant}-{key[:20]}.npz"
     if cache:
@@ -369,9 +394,9 @@ def build_kdtree(
         if loaded is not None and set(_TREE_ARRAYS) <= set(loaded[0]):
             arrays, stats = loaded
             stats = dict(stats, cache_hit=True)
-            return KDTree(scene, variant, arrays, stats, config.triangle_test)
+            return KDTree(scene, variant, arrays, stats, config.triangle_test, config.vector_occlusion)
     arrays, stats = _build_arrays(scene, variant, config)
     stats["cache_hit"] = False
     if cache:
         save_npz(path, arrays, stats)
-    return KDTree(scene, variant, arrays, stats, config.triangle_test)
+    return KDTree(scene, variant, arrays, stats, config.triangle_test, config.vector_occlusion)

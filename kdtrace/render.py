@@ -350,9 +350,9 @@ def render(
         traces the last ray's closest hit, the oracle; the image is the same.
     vector_occlusion : bool, optional
         Occlusion (any-hit) queries test a node's triangles all at once before one by one
-        (:func:`kdtrace._kdtree_traverse.span_blocked`; watertight trees only); default
-        ``[render] vector_occlusion``. False tests them one by one, the oracle; the image is
-        the same.
+        (:func:`kdtrace._kdtree_traverse.span_blocked`; watertight trees only); default: the
+        tree's (``[kdtree] vector_occlusion``). False tests them one by one, the oracle; the
+        image is the same.
 
     Returns
     -------
@@ -387,7 +387,6 @@ def render(
     if last_ray_shortcut is None:
         last_ray_shortcut = int(scene.emitter_triangles.size) <= config.last_ray_max_emitters
     last_ray_shortcut = bool(last_ray_shortcut)
-    vector_occlusion = bool(config.vector_occlusion if vector_occlusion is None else vector_occlusion)
     camera = scene.camera if camera is None else camera
     _check_camera(camera)
     width = _positive_int("width", camera.width if width is None else width)
@@ -409,7 +408,7 @@ def render(
     aux = "aux" in chosen
     _check_image_size(width, height, aux)
     tree = build_kdtree(scene, variant) if tree is None else tree
-    vector_occlusion = vector_occlusion and tree.watertight
+    vector_occlusion = tree.vector_occlusion if vector_occlusion is None else bool(vector_occlusion) and tree.watertight
     packed = _pack(scene, tree, vector_occlusion)
     cam = _camera_array(camera, width, height)
     flags = tuple(name in chosen for name in FEATURES)

@@ -79,8 +79,9 @@ def test_occluded_matches_oracle_with_tmin_tmax(variant, big_and_small_triangles
     np.testing.assert_allclose(t_ours[::20], expected, rtol=1e-9)
 
 
+@pytest.mark.parametrize("vector_occlusion", [False, True])
 @pytest.mark.parametrize("variant", VARIANTS)
-def test_any_hit_walks_the_segment_from_its_end(variant):
+def test_any_hit_walks_the_segment_from_its_end(variant, vector_occlusion):
     """Any-hit queries visit the far child of a split first: of the occluders along a shadow
     segment, the kernel reports one in the leaf reached first from tmax, not from the
     origin. The answer (blocked or not) cannot depend on the order: that is
@@ -97,7 +98,9 @@ def test_any_hit_walks_the_segment_from_its_end(variant):
     scene = Scene("squares", vertices, np.arange(len(vertices)).reshape(-1, 3), np.zeros(16), [Material("grey")])
     # Leaves of at most 4 triangles (two squares), whatever the default: the order is seen
     # only when the squares are spread over several leaves.
-    tree = build_kdtree(scene, variant, KDTreeConfig(min_leaf_size=4), cache=False)
+    tree = build_kdtree(scene, variant, KDTreeConfig(min_leaf_size=4, vector_occlusion=vector_occlusion), cache=False)
+    spans = tree.occlusion_spans()
+    assert (spans.size > 0) == vector_occlusion
     rng = np.random.default_rng(3)
     n = 200
     origins = np.column_stack([np.full(n, 0.5), rng.uniform(-0.4, 0.4, n), rng.uniform(-0.4, 0.4, n)])
@@ -105,7 +108,7 @@ def test_any_hit_walks_the_segment_from_its_end(variant):
     out = [np.empty(n), np.empty(n, np.int32), np.empty(n), np.empty(n), np.empty(n, np.int32), np.empty(n, np.int32)]
     for tmax, last_square in ((9.0, 8), (5.2, 5)):  # the segments end at x = 9.5 and 5.7
         for any_hit in (False, True):
-            kernels.trace_batch(tree.node_words, tree.node_splits, tree.refs, tree.box, tree.corners, origins,
+            kernels.trace_batch(tree.node_words, tree.node_splits, tree.refs, tree.box, tree.corners, spans, origins,
                                 directions, np.zeros(n), np.full(n, tmax), any_hit, True, 4, *out)
             square = out[1] // 2 + 1  # triangles 2k and 2k+1 make square k + 1
             if not any_hit:
@@ -115,6 +118,21 @@ def test_any_hit_walks_the_segment_from_its_end(variant):
                 # leaves on both sides, and the leaf reached first from tmax holds the last
                 # square and the one before it. From the origin it would be square 1 or 2.
                 assert np.isin(square, [last_square - 1, last_square]).all(), np.unique(square)
+
+
+@pytest.mark.parametrize("variant", VARIANTS)
+def test_span_corners_hold_each_span_as_one_block(big_and_small_triangles, variant):
+    """Every node's span of references (leaves and local-branch interior nodes) is one block of
+    ``span_corners``: 9 runs of ``count``, each a coordinate of the span's triangles in order."""
+    tree = build_kdtree(big_and_small_triangles, variant, KDTreeConfig(min_leaf_size=4), cache=False)
+    blocks = tree.span_corners
+    assert blocks.dtype == np.float32 and blocks.shape == (9 * len(tree.refs),)
+    spans = np.flatnonzero(tree.node_count > 0)
+    assert len(spans) > 1 and (tree.node_count[spans] > 1).any()
+    for node in spans:
+        first, count = int(tree.node_start[node]), int(tree.node_count[node])
+        expected = tree.corners[tree.refs[first:first + count]].T.reshape(-1)
+        np.testing.assert_array_equal(blocks[9 * first:9 * (first + count)], expected)
 
 
 def test_local_branch_is_the_naive_tree_with_pull_up(big_and_small_triangles):

@@ -22,6 +22,7 @@ ours is ``wrong`` and fails the test whatever its geometry.
 
 from __future__ import annotations
 
+import copy
 import os
 import warnings
 
@@ -87,6 +88,19 @@ def build_trees(scene: Scene, config) -> dict:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)  # zero-area triangles left out (expected here)
         return {variant: build_kdtree(scene, variant, config, cache=False) for variant in VARIANTS}
+
+
+def check_same_as_one_by_one(tree, blocked, *args) -> None:
+    """With the vector occlusion test, ``tree.occluded(*args)`` answered ``blocked`` with the
+    counters of one-by-one tests, bit for bit (the vector test only skips spans without a hit)."""
+    if not tree.vector_occlusion:
+        return
+    counters = tree.last_counters
+    scalar = copy.copy(tree)
+    scalar.vector_occlusion = False
+    np.testing.assert_array_equal(blocked, scalar.occluded(*args), err_msg="occluded differs from one-by-one tests")
+    np.testing.assert_array_equal(counters.nodes_visited, scalar.last_counters.nodes_visited)
+    np.testing.assert_array_equal(counters.triangle_tests, scalar.last_counters.triangle_tests)
 
 
 def oracle(scene: Scene, origins, directions, tmin=0.0, tmax=np.inf):
@@ -174,6 +188,7 @@ def check_occluded(case: StressScene, trees: dict, origins, directions, tmax) ->
     geometry = TriangleGeometry.of(scene)
     for variant, tree in trees.items():
         blocked = tree.occluded(origins, directions, tmax)
+        check_same_as_one_by_one(tree, blocked, origins, directions, tmax)
         assert blocked.dtype == bool and blocked.shape == expected.shape
         labels = compare_occlusion(scene, origins, directions, tmax, blocked, expected, geometry=geometry).labels
         bad = np.flatnonzero(np.isin(labels, FAILING))
