@@ -50,10 +50,10 @@ class KDTreeConfig:
         Ray-triangle test of the traversal: ``"watertight"`` (Woop, Benthin, Wald 2013;
         no ray slips between triangles sharing an edge) or ``"moller-trumbore"``. Not a
         build parameter: trees are cached and shared across both.
-    vector_occlusion : bool
-        Occlusion (any-hit) queries of watertight trees test a node's triangles all at once before
-        one by one (same answers and counters; ``kdtrace._kdtree_traverse.span_blocked``). Not a
-        build parameter either.
+    vector_spans : bool
+        Watertight trees' occlusion queries, and the path tracer's closest-hit ones, test a node's
+        triangles all at once before one by one (same answers and counters;
+        ``kdtrace._kdtree_traverse.span_blocked``). Not a build parameter either.
     """
 
     traversal_cost: float = 1.0
@@ -66,7 +66,7 @@ class KDTreeConfig:
     split_candidates: str = "bounds"
     clip_triangles: bool = False
     triangle_test: str = "watertight"
-    vector_occlusion: bool = True
+    vector_spans: bool = True
 
     def __post_init__(self) -> None:
         if self.traversal_cost < 0 or self.intersection_cost <= 0:

@@ -56,9 +56,9 @@ class KDTree:
     variant : {"naive", "local"}
     triangle_test : {"watertight", "moller-trumbore"}
         Ray-triangle test of the queries (``KDTreeConfig.triangle_test``).
-    vector_occlusion : bool
-        Occlusion queries test a node's triangles all at once before one by one
-        (``KDTreeConfig.vector_occlusion``; watertight trees only).
+    vector_spans : bool
+        Occlusion queries (and the path tracer's closest-hit ones) test a node's triangles all at
+        once before one by one (``KDTreeConfig.vector_spans``; watertight trees only).
     stats : dict
         nodes, leaves, empty_leaves, max_depth, triangle_references (leaf + interior),
         leaf_references, interior_references, sah_cost, tree_bytes (the build's arrays: 17 bytes
@@ -70,11 +70,11 @@ class KDTree:
     """
 
     def __init__(self, scene: Scene, variant: str, arrays: dict[str, np.ndarray], stats: dict,
-                 triangle_test: str = "watertight", vector_occlusion: bool = True):
+                 triangle_test: str = "watertight", vector_spans: bool = True):
         self.variant = variant
         self.triangle_test = triangle_test
         self.watertight = triangle_test == "watertight"
-        self.vector_occlusion = vector_occlusion and self.watertight
+        self.vector_spans = vector_spans and self.watertight
         self.node_meta = arrays["node_meta"]
         self.node_split = arrays["node_split"]
         self.node_start = arrays["node_start"]
@@ -96,7 +96,7 @@ class KDTree:
         """The references' corners, float32, flat, one block per node's span of references (the
         spans of leaves and of local-branch interior nodes partition ``refs``): the span
         ``first .. first + count - 1`` holds coordinate ``c`` (9 per triangle, as in ``corners``)
-        of its ``j``-th reference at ``9 first + c count + j``. So the vector occlusion test
+        of its ``j``-th reference at ``9 first + c count + j``. So the vector span test
         (:func:`kdtrace._kdtree_traverse.span_blocked`) reads a span as 9 runs side by side in
         ``36 count`` contiguous bytes; one run per coordinate over all references had spread a
         span over 9 cache lines, and made the bunny's shadow rays slower, not faster.
@@ -114,10 +114,10 @@ class KDTree:
             out[9 * span_first + c * span_count + position] = self.corners[self.refs, c]
         return out
 
-    def occlusion_spans(self) -> np.ndarray:
+    def traversal_spans(self) -> np.ndarray:
         """The ``span_corners`` argument of the traversal kernels: :attr:`span_corners` with
-        :attr:`vector_occlusion`, else empty (triangles tested one by one)."""
-        return self.span_corners if self.vector_occlusion else np.zeros(0, np.float32)
+        :attr:`vector_spans`, else empty (triangles tested one by one)."""
+        return self.span_corners if self.vector_spans else np.zeros(0, np.float32)
 
     def __repr__(self) -> str:
         return f"KDTree(variant={self.variant!r}, nodes={self.stats['nodes']}, references={self.stats['triangle_references']})"
@@ -142,7 +142,7 @@ class KDTree:
                 self.watertight, packet_kernels.PACKET_SIZE, n_chunks, *outputs)
         else:
             traverse_kernels.trace_batch(
-                self.node_words, self.node_splits, self.refs, self.box, self.corners, self.occlusion_spans(), origins,
+                self.node_words, self.node_splits, self.refs, self.box, self.corners, self.traversal_spans(), origins,
                 directions, tmin, tmax, any_hit, self.watertight, n_chunks, *outputs)
         self.last_counters = TraceCounters(visited, tests)
         return out_t, out_tri, out_u, out_v
@@ -384,9 +384,9 @@ def build_kdtree(
             f"scene {scene.name!r}: {zero_area} zero-area triangles left out of the KD-tree",
             stacklevel=2,
         )
-    # The triangle test and the vector occlusion test are traversal choices: the trees are the same.
+    # The triangle test and the vector span test are traversal choices: the trees are the same.
     build_parameters = {k: v for k, v in dataclasses.asdict(config).items()
-                        if k not in ("triangle_test", "vector_occlusion")}
+                        if k not in ("triangle_test", "vector_spans")}
     key = content_key("kdtree", BUILDER_VERSION, variant, scene.geometry_hash(), build_parameters)
     path = cache_root() / "kdtrees" / f"{scene.name}-{variant}-{key[:20]}.npz"
     if cache:
@@ -394,9 +394,9 @@ def build_kdtree(
         if loaded is not None and set(_TREE_ARRAYS) <= set(loaded[0]):
             arrays, stats = loaded
             stats = dict(stats, cache_hit=True)
-            return KDTree(scene, variant, arrays, stats, config.triangle_test, config.vector_occlusion)
+            return KDTree(scene, variant, arrays, stats, config.triangle_test, config.vector_spans)
     arrays, stats = _build_arrays(scene, variant, config)
     stats["cache_hit"] = False
     if cache:
         save_npz(path, arrays, stats)
-    return KDTree(scene, variant, arrays, stats, config.triangle_test, config.vector_occlusion)
+    return KDTree(scene, variant, arrays, stats, config.triangle_test, config.vector_spans)

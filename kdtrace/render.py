@@ -217,8 +217,8 @@ def _camera_array(camera: Camera, width: int, height: int) -> np.ndarray:
     return np.concatenate([np.asarray(camera.position, np.float64), forward, right, up, [half_h * width / height, half_h]])
 
 
-def _pack(scene: Scene, tree: KDTree, vector_occlusion: bool) -> dict[str, np.ndarray]:
-    """The kernel's scene arguments, in order (``span_corners`` empty unless ``vector_occlusion``)."""
+def _pack(scene: Scene, tree: KDTree, vector_spans: bool) -> dict[str, np.ndarray]:
+    """The kernel's scene arguments, in order (``span_corners`` empty unless ``vector_spans``)."""
     mat_tex, texels, tex_info = _textures(scene)
     emit_tri, emit_cdf, tri_emit_pdf = _emitters(scene)
     tri_normals = (scene.normals[scene.triangles].reshape(-1, 9) if scene.normals is not None
@@ -228,7 +228,7 @@ def _pack(scene: Scene, tree: KDTree, vector_occlusion: bool) -> dict[str, np.nd
     return {
         "nodes": tree.node_words, "splits": tree.node_splits, "refs": tree.refs,
         "box": tree.box, "corners": tree.corners,
-        "span_corners": tree.span_corners if vector_occlusion else np.zeros(0, np.float32),
+        "span_corners": tree.span_corners if vector_spans else np.zeros(0, np.float32),
         "watertight": tree.watertight, "tri_mat": scene.material_ids,
         "tri_gnormal": kernels.geometric_normals(tree.corners),
         "tri_normals": np.ascontiguousarray(tri_normals), "tri_uv": np.ascontiguousarray(tri_uv),
@@ -303,7 +303,7 @@ def render(
     first_sample: int = 0,
     camera_packets: bool | None = None,
     last_ray_shortcut: bool | None = None,
-    vector_occlusion: bool | None = None,
+    vector_spans: bool | None = None,
 ) -> RenderResult:
     """Path trace ``scene`` from its camera on a KD-tree.
 
@@ -348,10 +348,10 @@ def render(
         for anything), see :func:`kdtrace._render_kernels.last_ray_hit`. Default: on when
         the scene has at most ``[render] last_ray_max_emitters`` emitter triangles. False
         traces the last ray's closest hit, the oracle; the image is the same.
-    vector_occlusion : bool, optional
-        Occlusion (any-hit) queries test a node's triangles all at once before one by one
+    vector_spans : bool, optional
+        Occlusion and closest-hit queries test a node's triangles all at once before one by one
         (:func:`kdtrace._kdtree_traverse.span_blocked`; watertight trees only); default: the
-        tree's (``[kdtree] vector_occlusion``). False tests them one by one, the oracle; the
+        tree's (``[kdtree] vector_spans``). False tests them one by one, the oracle; the
         image is the same.
 
     Returns
@@ -408,8 +408,8 @@ def render(
     aux = "aux" in chosen
     _check_image_size(width, height, aux)
     tree = build_kdtree(scene, variant) if tree is None else tree
-    vector_occlusion = tree.vector_occlusion if vector_occlusion is None else bool(vector_occlusion) and tree.watertight
-    packed = _pack(scene, tree, vector_occlusion)
+    vector_spans = tree.vector_spans if vector_spans is None else bool(vector_spans) and tree.watertight
+    packed = _pack(scene, tree, vector_spans)
     cam = _camera_array(camera, width, height)
     flags = tuple(name in chosen for name in FEATURES)
     depth_limit = int(max_depth)
@@ -440,7 +440,7 @@ def render(
         "compile_seconds": compile_seconds,
         "spp": spp, "first_sample": first_sample, "max_depth": depth_limit, "rr_depth": rr_depth, "seed": int(seed),
         "width": width, "height": height, "tile_size": tile_size, "variant": tree.variant, "camera_packets": camera_packets,
-        "last_ray_shortcut": last_ray_shortcut, "vector_occlusion": vector_occlusion,
+        "last_ray_shortcut": last_ray_shortcut, "vector_spans": vector_spans,
         "threads": numba.get_num_threads(),
     }
     return RenderResult(

@@ -93,11 +93,11 @@ def build_trees(scene: Scene, config) -> dict:
 def check_same_as_one_by_one(tree, blocked, *args) -> None:
     """With the vector occlusion test, ``tree.occluded(*args)`` answered ``blocked`` with the
     counters of one-by-one tests, bit for bit (the vector test only skips spans without a hit)."""
-    if not tree.vector_occlusion:
+    if not tree.vector_spans:
         return
     counters = tree.last_counters
     scalar = copy.copy(tree)
-    scalar.vector_occlusion = False
+    scalar.vector_spans = False
     np.testing.assert_array_equal(blocked, scalar.occluded(*args), err_msg="occluded differs from one-by-one tests")
     np.testing.assert_array_equal(counters.nodes_visited, scalar.last_counters.nodes_visited)
     np.testing.assert_array_equal(counters.triangle_tests, scalar.last_counters.triangle_tests)
@@ -453,7 +453,7 @@ def test_stress_many_examples(case, config, seed, ray_kind, exponent, tiny):
 @given(case=stress_scenes(kinds=("soup", "slivers", "heightfield", "big_and_small"), max_triangles=300,
                           allow_duplicates=False),
        config=tree_configs, seed=st.integers(0, 2**16), sky=st.booleans())
-def test_last_ray_shortcut_and_vector_occlusion_render_the_oracles_image(case, config, seed, sky):
+def test_last_ray_shortcut_and_vector_spans_render_the_oracles_image(case, config, seed, sky):
     """The path tracer's last ray against the emitters, then an any-hit query
     (:func:`kdtrace._render_kernels.last_ray_hit`), and occlusion queries testing a node's
     triangles all at once (:func:`kdtrace._kdtree_traverse.span_blocked`) give the image of the
@@ -481,6 +481,6 @@ def test_last_ray_shortcut_and_vector_occlusion_render_the_oracles_image(case, c
         tree = build_kdtree(scene, "local", config=config)
         for max_depth in (2, 3):
             full, shortcut = (render(scene, spp=2, max_depth=max_depth, seed=seed, tree=tree, last_ray_shortcut=flag,
-                                     vector_occlusion=flag) for flag in (False, True))
+                                     vector_spans=flag) for flag in (False, True))
             assert np.array_equal(full.rgb, shortcut.rgb), f"{case}, max_depth {max_depth}"
             assert np.array_equal(full.variance, shortcut.variance), f"{case}, max_depth {max_depth}"

@@ -257,7 +257,7 @@ def test_specialised_and_general_kernels_agree(cbox):
 
 # ------------------------------------------------------------------ stereo
 @pytest.mark.parametrize("case", ["emitters", "glass", "emitters and sky", "sky only", "textures and sky"])
-def test_last_ray_shortcut_and_vector_occlusion_give_the_oracles_image(cbox, case):
+def test_last_ray_shortcut_and_vector_spans_give_the_oracles_image(cbox, case):
     """Bit for bit, at max_depth 2 and 3: the last ray tested against the emitters and then for
     occlusion (or escape) gives the image of its full closest-hit walk, and occlusion queries
     that test a node's triangles all at once give that of testing them one by one, each alone
@@ -277,18 +277,18 @@ def test_last_ray_shortcut_and_vector_occlusion_give_the_oracles_image(cbox, cas
     tree = build_kdtree(scene)
     for max_depth in (2, 3):
         oracle, *fast = (render(scene, spp=3, max_depth=max_depth, seed=SEED, width=37, height=21, tree=tree,
-                                features=features, last_ray_shortcut=shortcut, vector_occlusion=vector)
+                                features=features, last_ray_shortcut=shortcut, vector_spans=vector)
                          for shortcut, vector in ((False, False), (True, False), (False, True), (True, True)))
         for result in fast:
             for field in ("rgb", "variance", "albedo", "normal", "depth"):
                 assert np.array_equal(getattr(oracle, field), getattr(result, field)), f"max_depth {max_depth}: {field}"
             assert oracle.stats["rays"] == result.stats["rays"]
-        assert not oracle.stats["last_ray_shortcut"] and not oracle.stats["vector_occlusion"]
-        assert fast[-1].stats["last_ray_shortcut"] and fast[-1].stats["vector_occlusion"]
+        assert not oracle.stats["last_ray_shortcut"] and not oracle.stats["vector_spans"]
+        assert fast[-1].stats["last_ray_shortcut"] and fast[-1].stats["vector_spans"]
         assert oracle.rgb.max() > 0.0
     # Both on by default for a scene with few emitter triangles.
     stats = render(scene, spp=1, width=8, height=8, tree=tree, features=features).stats
-    assert stats["last_ray_shortcut"] and stats["vector_occlusion"]
+    assert stats["last_ray_shortcut"] and stats["vector_spans"]
 
 
 def test_stereo_pair_differs_by_horizontal_parallax_only(cbox):
