@@ -437,8 +437,8 @@ def store_hit(outputs, i, t, tri, u, v, visited, tests):
 
 
 @njit(cache=True, _nrt=False)
-def _trace_rays(nodes, splits, refs, box, corners, span_corners, origins, directions, tmin, tmax, any_hit, watertight,
-                first, end, out_t, out_tri, out_u, out_v, out_visited, out_tests):
+def _trace_rays(nodes, splits, refs, box, corners, origins, directions, tmin, tmax, any_hit, watertight, first, end,
+                out_t, out_tri, out_u, out_v, out_visited, out_tests):
     """Rays ``first .. end - 1`` of :func:`trace_batch` (one parallel chunk).
 
     :func:`trace_ray` is inlined once with ``any_hit`` a constant True and once False, so
@@ -450,14 +450,16 @@ def _trace_rays(nodes, splits, refs, box, corners, span_corners, origins, direct
     """
     st_node, st_ent, st_ext, ray = ray_scratch()
     outputs = (out_t, out_tri, out_u, out_v, out_visited, out_tests)
-    # Closest hits test one by one here: with the vector test, the bunny's incoherent rays (Table 1)
-    # ran 0.35-0.36x Embree instead of 0.38-0.43x, each re-testing the span it hits (2026-12-05).
+    # Triangles one by one: with the vector span test (separate processes, 2026-12-05) Table 1's
+    # shadow rays ran faster on the Cornell boxes and car but slower on the deep trees near the
+    # 0.35x-Embree target (samurai-monastery 0.35-0.37 -> 0.31-0.35, dabrovic-sponza 0.73-0.75 ->
+    # 0.67-0.69, bunny 0.34-0.35 -> 0.26-0.33), and bunny's incoherent rays 0.38-0.43 -> 0.35-0.36.
     one_by_one = no_spans(corners)
     for i in range(first, end):
         ox, oy, oz = origins[i, 0], origins[i, 1], origins[i, 2]
         dx, dy, dz = directions[i, 0], directions[i, 1], directions[i, 2]
         if any_hit:
-            t, tri, u, v, visited, tests = trace_ray(nodes, splits, refs, box, corners, span_corners, ox, oy, oz,
+            t, tri, u, v, visited, tests = trace_ray(nodes, splits, refs, box, corners, one_by_one, ox, oy, oz,
                                                      dx, dy, dz, tmin[i], tmax[i], True, watertight, st_node, st_ent,
                                                      st_ext, ray)
         else:
@@ -469,19 +471,16 @@ def _trace_rays(nodes, splits, refs, box, corners, span_corners, origins, direct
 
 @njit(cache=True, parallel=True)
 def trace_batch(
-    nodes, splits, refs, box, corners, span_corners,
+    nodes, splits, refs, box, corners,
     origins, directions, tmin, tmax, any_hit, watertight, n_chunks,
     out_t, out_tri, out_u, out_v, out_visited, out_tests,
 ):
-    """Trace every ray, in parallel over chunks of rays (one stack per chunk, :func:`_trace_rays`);
-    ``span_corners`` as in :func:`trace_ray` for the occlusion queries (empty: triangles one by one);
-    closest hits test one by one (:func:`_trace_rays`)."""
+    """Trace every ray, in parallel over chunks of rays (one stack per chunk, :func:`_trace_rays`)."""
     n = origins.shape[0]
     chunk = (n + n_chunks - 1) // n_chunks
     for c in prange(n_chunks):
-        _trace_rays(nodes, splits, refs, box, corners, span_corners, origins, directions, tmin, tmax, any_hit,
-                    watertight, c * chunk, min(n, (c + 1) * chunk), out_t, out_tri, out_u, out_v, out_visited,
-                    out_tests)
+        _trace_rays(nodes, splits, refs, box, corners, origins, directions, tmin, tmax, any_hit, watertight,
+                    c * chunk, min(n, (c + 1) * chunk), out_t, out_tri, out_u, out_v, out_visited, out_tests)
 
 
 # numba's cache checks this file only; recompile when a module inlined from here changes.

@@ -51,9 +51,9 @@ class KDTreeConfig:
         no ray slips between triangles sharing an edge) or ``"moller-trumbore"``. Not a
         build parameter: trees are cached and shared across both.
     vector_spans : bool
-        Watertight trees' occlusion queries, and the path tracer's closest-hit ones, test a node's
-        triangles all at once before one by one (same answers and counters;
-        ``kdtrace._kdtree_traverse.span_blocked``). Not a build parameter either.
+        The path tracer's ray queries on watertight trees test a node's triangles all at once
+        before one by one (same images; ``kdtrace._kdtree_traverse.span_blocked``). Not a build
+        parameter either.
     """
 
     traversal_cost: float = 1.0

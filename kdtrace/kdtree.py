@@ -57,8 +57,9 @@ class KDTree:
     triangle_test : {"watertight", "moller-trumbore"}
         Ray-triangle test of the queries (``KDTreeConfig.triangle_test``).
     vector_spans : bool
-        Occlusion queries (and the path tracer's closest-hit ones) test a node's triangles all at
-        once before one by one (``KDTreeConfig.vector_spans``; watertight trees only).
+        The path tracer's queries on this tree test a node's triangles all at once before one by
+        one (``KDTreeConfig.vector_spans``; watertight trees only). The batch queries
+        (:meth:`intersect`, :meth:`occluded`) test them one by one.
     stats : dict
         nodes, leaves, empty_leaves, max_depth, triangle_references (leaf + interior),
         leaf_references, interior_references, sah_cost, tree_bytes (the build's arrays: 17 bytes
@@ -114,11 +115,6 @@ class KDTree:
             out[9 * span_first + c * span_count + position] = self.corners[self.refs, c]
         return out
 
-    def traversal_spans(self) -> np.ndarray:
-        """The ``span_corners`` argument of the traversal kernels: :attr:`span_corners` with
-        :attr:`vector_spans`, else empty (triangles tested one by one)."""
-        return self.span_corners if self.vector_spans else np.zeros(0, np.float32)
-
     def __repr__(self) -> str:
         return f"KDTree(variant={self.variant!r}, nodes={self.stats['nodes']}, references={self.stats['triangle_references']})"
 
@@ -142,8 +138,8 @@ class KDTree:
                 self.watertight, packet_kernels.PACKET_SIZE, n_chunks, *outputs)
         else:
             traverse_kernels.trace_batch(
-                self.node_words, self.node_splits, self.refs, self.box, self.corners, self.traversal_spans(), origins,
-                directions, tmin, tmax, any_hit, self.watertight, n_chunks, *outputs)
+                self.node_words, self.node_splits, self.refs, self.box, self.corners, origins, directions, tmin, tmax,
+                any_hit, self.watertight, n_chunks, *outputs)
         self.last_counters = TraceCounters(visited, tests)
         return out_t, out_tri, out_u, out_v
 

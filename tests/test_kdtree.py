@@ -79,9 +79,8 @@ def test_occluded_matches_oracle_with_tmin_tmax(variant, big_and_small_triangles
     np.testing.assert_allclose(t_ours[::20], expected, rtol=1e-9)
 
 
-@pytest.mark.parametrize("vector_spans", [False, True])
 @pytest.mark.parametrize("variant", VARIANTS)
-def test_any_hit_walks_the_segment_from_its_end(variant, vector_spans):
+def test_any_hit_walks_the_segment_from_its_end(variant):
     """Any-hit queries visit the far child of a split first: of the occluders along a shadow
     segment, the kernel reports one in the leaf reached first from tmax, not from the
     origin. The answer (blocked or not) cannot depend on the order: that is
@@ -98,9 +97,7 @@ def test_any_hit_walks_the_segment_from_its_end(variant, vector_spans):
     scene = Scene("squares", vertices, np.arange(len(vertices)).reshape(-1, 3), np.zeros(16), [Material("grey")])
     # Leaves of at most 4 triangles (two squares), whatever the default: the order is seen
     # only when the squares are spread over several leaves.
-    tree = build_kdtree(scene, variant, KDTreeConfig(min_leaf_size=4, vector_spans=vector_spans), cache=False)
-    spans = tree.traversal_spans()
-    assert (spans.size > 0) == vector_spans
+    tree = build_kdtree(scene, variant, KDTreeConfig(min_leaf_size=4), cache=False)
     rng = np.random.default_rng(3)
     n = 200
     origins = np.column_stack([np.full(n, 0.5), rng.uniform(-0.4, 0.4, n), rng.uniform(-0.4, 0.4, n)])
@@ -108,7 +105,7 @@ def test_any_hit_walks_the_segment_from_its_end(variant, vector_spans):
     out = [np.empty(n), np.empty(n, np.int32), np.empty(n), np.empty(n), np.empty(n, np.int32), np.empty(n, np.int32)]
     for tmax, last_square in ((9.0, 8), (5.2, 5)):  # the segments end at x = 9.5 and 5.7
         for any_hit in (False, True):
-            kernels.trace_batch(tree.node_words, tree.node_splits, tree.refs, tree.box, tree.corners, spans, origins,
+            kernels.trace_batch(tree.node_words, tree.node_splits, tree.refs, tree.box, tree.corners, origins,
                                 directions, np.zeros(n), np.full(n, tmax), any_hit, True, 4, *out)
             square = out[1] // 2 + 1  # triangles 2k and 2k+1 make square k + 1
             if not any_hit:

@@ -56,9 +56,8 @@ def trace_both(tree, origins, directions, tmax=np.inf, packet_size=packet_kernel
     n = len(origins)
     chunks = max(1, min(n, 4))
     scalar = _outputs(n)
-    scalar_kernels.trace_batch(tree.node_words, tree.node_splits, tree.refs, tree.box, tree.corners,
-                               np.zeros(0, np.float32), origins, directions, tmin, tmax, False, tree.watertight, chunks,
-                               *scalar)
+    scalar_kernels.trace_batch(tree.node_words, tree.node_splits, tree.refs, tree.box, tree.corners, origins,
+                               directions, tmin, tmax, False, tree.watertight, chunks, *scalar)
     packet = _outputs(n)
     packet_kernels.trace_batch_packets(tree.node_words, tree.node_splits, tree.refs, tree.box, tree.corners,
                                        origins, directions, tmax, tree.watertight, packet_size, chunks, *packet)
