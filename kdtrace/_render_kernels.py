@@ -330,7 +330,7 @@ def path_sample(
 
     ``last_ray_shortcut`` traces the last ray with :func:`last_ray_hit` (the same image).
     ``tree`` is ``(nodes, splits, refs, box, corners, span_corners)`` (an empty ``span_corners``:
-    occlusion queries test triangles one by one), ``shading`` the per-triangle,
+    its ray queries test triangles one by one), ``shading`` the per-triangle,
     material, texture, emitter and sky arrays in :func:`render_tiles`' order (``tri_mat``
     to ``sky_rgb``), and ``scratch`` the traversal's ``(st_node, st_ent, st_ext, ray)``.
     They are tuples because CPython compiles a call of more than 30 arguments into

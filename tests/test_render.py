@@ -259,9 +259,9 @@ def test_specialised_and_general_kernels_agree(cbox):
 @pytest.mark.parametrize("case", ["emitters", "glass", "emitters and sky", "sky only", "textures and sky"])
 def test_last_ray_shortcut_and_vector_spans_give_the_oracles_image(cbox, case):
     """Bit for bit, at max_depth 2 and 3: the last ray tested against the emitters and then for
-    occlusion (or escape) gives the image of its full closest-hit walk, and occlusion queries
-    that test a node's triangles all at once give that of testing them one by one, each alone
-    and together. The Cornell box's ceiling sees the back of the light, its open front lets rays
+    occlusion (or escape) gives the image of its full closest-hit walk, and ray queries (closest
+    hit and occlusion) that test a node's triangles all at once give that of testing them one by
+    one, each alone and together. The Cornell box's ceiling sees the back of the light, its open front lets rays
     reach the sky, and its glass box makes last rays follow specular bounces."""
     scene, features = cbox, None
     if case == "glass":
