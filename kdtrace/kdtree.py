@@ -101,7 +101,9 @@ class KDTree:
         (:func:`kdtrace._kdtree_traverse.span_blocked`) reads a span as 9 runs side by side in
         ``36 count`` contiguous bytes; one run per coordinate over all references had spread a
         span over 9 cache lines, and made the bunny's shadow rays slower, not faster.
-        36 bytes a reference, made on first use."""
+        36 bytes a reference, made on first use, and :data:`kdtrace._kdtree_traverse.SPAN_LANES`
+        zeros at the end (the vector test reads whole passes of lanes and masks the lanes past
+        a span's end)."""
         spans = np.flatnonzero(self.node_count > 0)
         spans = spans[np.argsort(self.node_start[spans], kind="stable")]  # in the order of refs
         counts = self.node_count[spans].astype(np.int64)
@@ -110,7 +112,7 @@ class KDTree:
         position = np.arange(len(self.refs)) - span_first
         if len(self.refs) and (position.min() < 0 or (position >= span_count).any()):
             raise AssertionError("the nodes' spans do not partition the references in order")
-        out = np.empty(9 * len(self.refs), np.float32)
+        out = np.zeros(9 * len(self.refs) + traverse_kernels.SPAN_LANES, np.float32)
         for c in range(9):
             out[9 * span_first + c * span_count + position] = self.corners[self.refs, c]
         return out

@@ -6,9 +6,11 @@ import warnings
 
 import numpy as np
 import pytest
+from numba import njit
 
 from kdtrace._kdtree_build import LEAF
 from kdtrace._kdtree_layout import HAS_TRIANGLES, LINE_NODES
+from kdtrace._kdtree_traverse import SPAN_LANES, span_blocked, triangle_test_setup
 from kdtrace.config import KDTreeConfig
 from kdtrace.kdtree import VARIANTS, build_kdtree
 from kdtrace.oracle import intersect_brute_force
@@ -120,10 +122,12 @@ def test_any_hit_walks_the_segment_from_its_end(variant):
 @pytest.mark.parametrize("variant", VARIANTS)
 def test_span_corners_hold_each_span_as_one_block(big_and_small_triangles, variant):
     """Every node's span of references (leaves and local-branch interior nodes) is one block of
-    ``span_corners``: 9 runs of ``count``, each a coordinate of the span's triangles in order."""
+    ``span_corners``: 9 runs of ``count``, each a coordinate of the span's triangles in order,
+    and the zero padding the vector test's last pass may read."""
     tree = build_kdtree(big_and_small_triangles, variant, KDTreeConfig(min_leaf_size=4), cache=False)
     blocks = tree.span_corners
-    assert blocks.dtype == np.float32 and blocks.shape == (9 * len(tree.refs),)
+    assert blocks.dtype == np.float32 and blocks.shape == (9 * len(tree.refs) + SPAN_LANES,)
+    assert not blocks[9 * len(tree.refs):].any()
     spans = np.flatnonzero(tree.node_count > 0)
     assert len(spans) > 1 and (tree.node_count[spans] > 1).any()
     for node in spans:
@@ -363,3 +367,32 @@ def test_axis_parallel_rays_on_a_grid_hit_exactly(variant):
     in_plane = np.stack([gx.ravel(), gy.ravel(), np.zeros(gx.size)], 1)
     t, tri, _, _ = tree.intersect(in_plane - [1.0, 0.0, 0.0], np.tile([1.0, 0.0, 0.0], (len(origins), 1)))
     assert np.all(tri == -1), "rays inside the triangles' plane are parallel to them"
+
+
+@njit(error_model="numpy")
+def _span_blocked_along(span_corners, first, count, origin, direction, tmax):
+    """:func:`span_blocked` for one ray, with the ray's setup as :func:`trace_ray` makes it."""
+    okx, oky, okz, kx, ky, kz, sx, sy, sz = triangle_test_setup(True, origin[0], origin[1], origin[2], direction[0],
+                                                                direction[1], direction[2])
+    return span_blocked(span_corners, first, count, okx, oky, okz, kx, ky, kz, sx, sy, sz, 0.0, tmax)
+
+
+def test_span_test_answers_for_the_span_alone():
+    """The vector span test reads whole passes of lanes past a span's end (into the next span,
+    or the padding): whatever lies there, its answer is the brute-force oracle's for the span's
+    own triangles. Random triangles and rays, so that the lanes past the end often hold a hit."""
+    rng = np.random.default_rng(7)
+    answers = []
+    for _ in range(3000):
+        count = int(rng.integers(1, 12))
+        corners = rng.uniform(-1.0, 1.0, (count, 9)).astype(np.float32)
+        after = rng.uniform(-1.0, 1.0, int(rng.integers(0, 30)) + SPAN_LANES).astype(np.float32)
+        blocks = np.concatenate([corners.T.reshape(-1), after])
+        origin = rng.uniform(-1.0, 1.0, 3) + np.array([0.0, 0.0, -3.0])
+        direction = rng.normal(size=3) * 0.3 + np.array([0.0, 0.0, 1.0])
+        direction /= np.linalg.norm(direction)
+        _, hits, _, _ = intersect_brute_force(corners.reshape(-1, 3).astype(np.float64), np.arange(3 * count).reshape(-1, 3),
+                                              origin[None], direction[None], tmax=10.0)
+        answers.append(hits[0] >= 0)
+        assert _span_blocked_along(blocks, 0, count, origin, direction, 10.0) == (hits[0] >= 0)
+    assert 0.1 < np.mean(answers) < 0.9  # both answers were put to the test
