@@ -1,4 +1,4 @@
-"""numba kernel: closest hits of a packet of coherent rays traversed together.
+"""numba kernels: closest hits, and occlusion, of a packet of coherent rays traversed together.
 
 A packet (Wald et al. 2001; Wald 2004, ch. 7 for kd-trees) walks the tree once for all
 its rays: a node is fetched and decoded once per packet instead of once per ray, and
@@ -13,6 +13,15 @@ The packet needs its active rays to agree on which child of a split is near (tru
 rays from one origin, e.g. a pinhole camera's, except on a split plane through that
 origin). Where they do not, :func:`trace_packet` gives up and returns False, and the
 caller traces the packet's rays one by one.
+
+Occlusion queries (:func:`occluded_packet`, the path tracer's shadow rays from the first
+hits of a camera packet) need no order, so their rays never leave the packet for
+disagreeing: each goes where its own interval reaches. On shadow rays from jittered
+camera hits towards the light (8 a pixel, the renderer's order) a packet of 16 visited 9.6
+nodes on cbox-original and 19.7 on car, where the 16 rays one by one visit 16 x 8.1 and
+16 x 10.6; the packet's lane work (about 700 cycles to load 16 rays, about 150 a split and
+90 a triangle for each shear axis in use, measured with the cycle counter) leaves 1.8x
+(cbox-original) and 1.2x (car) over one-by-one rays in a batch, 2026-12-05.
 """
 
 from __future__ import annotations
@@ -35,6 +44,7 @@ from kdtrace._kdtree_traverse import (
     ray_shear,
     store_hit,
     trace_ray,
+    watertight_decision,
 )
 from kdtrace._stack import stack_empty
 from kdtrace.cache import drop_stale_kernel_cache
@@ -369,6 +379,189 @@ def trace_packet(nodes, splits, refs, box, corners, origins, directions, n, tmax
             lanes[_U, r] = 0.0
             lanes[_V, r] = 0.0
     return True
+
+
+@njit(cache=True, inline="always")
+def occluded_packet(nodes, splits, refs, box, corners, origins, directions, n, scratch):
+    """Which of the rays ``0 .. n-1`` (n <= :data:`PACKET_SIZE`) hit a triangle in ``(0, tmax)``:
+    the mask of the blocked ones. Watertight trees only.
+
+    The caller puts each ray's tmax in ``lanes[_BEST]`` of ``scratch`` (from :func:`packet_scratch`;
+    inline it as :func:`trace_packet`). An occlusion query's answer does not depend on the
+    order in which the tree is walked, so, unlike :func:`trace_packet`, rays that disagree
+    on a near child stay in the packet: at a split each ray goes to the children its own
+    interval reaches, by the scalar walk's rules (:func:`_split_lanes`), and the packet
+    visits a child if any of its rays does. So each ray visits every node the scalar walk
+    would visit without a hit, tests its triangles with the scalar test's arithmetic, and is
+    blocked exactly when :func:`kdtrace._kdtree_traverse.trace_ray` with ``any_hit`` says
+    so. A ray leaves the packet at its first hit. The child most rays meet last is walked
+    first (the scalar any-hit walk's far-first order, by majority).
+    """
+    lanes3, lanes, lane_ints, st_head, st_span, flags = scratch
+    ent_l = lanes[_ENT]
+    ext_l = lanes[_EXT]
+    far_ent = lanes[_FAR_ENT]
+    far_ext = lanes[_FAR_EXT]
+    active, along_x, along_y, along_z = _load_lanes(box, origins, directions, n, True, lanes3, lanes, lane_ints)
+    along = (along_x, along_y, along_z)
+    spans = np.uint64(nodes.shape[0] >> 2)
+    node = np.uint64(0)
+    sp = 0
+    blocked = 0
+    while active != 0:
+        word, axis, first, count = decode_node(nodes, node, spans)
+        for k in range(first, first + count):
+            hits = _lanes_blocked(refs[np.uint64(k)], corners, along, active, lanes3, lanes, flags)
+            blocked |= hits
+            active &= ~hits
+            if active == 0:
+                break
+        if axis != LEAF and active != 0:
+            left = np.uint64(word >> 3)
+            split = np.float64(splits[np.uint64(2) * node + np.uint64(1)])
+            left_near, go_near, go_far, _ = _split_lanes(split, axis, active, lanes3, lanes)
+            # Walk first the child that is the far one of most rays; ``near_first`` holds the
+            # rays for which that child is their near one.
+            right_first = 2 * _popcount(left_near) >= _popcount(active)
+            near_first = (active & ~left_near) if right_first else left_near
+            first_rays = (go_near & near_first) | (go_far & ~near_first)
+            second_rays = (go_far & near_first) | (go_near & ~near_first)
+            if second_rays != 0:
+                st_head[sp, 0] = np.int64(left if right_first else left + np.uint64(1))
+                st_head[sp, 1] = second_rays
+                pushed_ent = st_span[sp, 0]
+                pushed_ext = st_span[sp, 1]
+                for r in range(PACKET_SIZE):
+                    near = (near_first >> r) & 1 == 1
+                    pushed_ent[r] = far_ent[r] if near else ent_l[r]
+                    pushed_ext[r] = far_ext[r] if near else ext_l[r]
+                sp += 1
+            if first_rays != 0:
+                for r in range(PACKET_SIZE):
+                    near = (near_first >> r) & 1 == 1
+                    ent_l[r] = ent_l[r] if near else far_ent[r]
+                    ext_l[r] = ext_l[r] if near else far_ext[r]
+                node = left + np.uint64(1) if right_first else left
+                active = first_rays
+                continue
+        active = 0
+        while sp > 0:
+            sp -= 1
+            mask = st_head[sp, 1] & ~blocked
+            if mask != 0:
+                node = np.uint64(st_head[sp, 0])
+                active = mask
+                pushed_ent = st_span[sp, 0]
+                pushed_ext = st_span[sp, 1]
+                for r in range(PACKET_SIZE):
+                    ent_l[r] = pushed_ent[r]
+                    ext_l[r] = pushed_ext[r]
+                break
+    return blocked
+
+
+@njit(cache=True, inline="always")
+def _popcount(mask):
+    """Number of set bits of a lane mask."""
+    count = 0
+    while mask != 0:
+        mask &= mask - 1
+        count += 1
+    return count
+
+
+@njit(cache=True, inline="always")
+def _lowest_lane(mask):
+    """Index of the lowest set bit of a non-zero lane mask."""
+    lane = 0
+    while (mask >> lane) & 1 == 0:
+        lane += 1
+    return lane
+
+
+@njit(cache=True, inline="always")
+def _lanes_blocked_along(tri, corners, kx, ky, kz, group, lanes3, lanes, flags):
+    """Mask of the lanes whose ray hits triangle ``tri`` in (0, lanes[_BEST]), for shear axes
+    ``kx, ky, kz``: the scalar test's decision and its ``t < tmax``, branch-free over the lanes."""
+    ok = lanes3[_PERMUTED]
+    okx = ok[0]
+    oky = ok[1]
+    okz = ok[2]
+    shx = lanes[_SHEAR_X]
+    shy = lanes[_SHEAR_Y]
+    shz = lanes[_SHEAR_Z]
+    best = lanes[_BEST]
+    cax = np.float64(corners[tri, kx])
+    cay = np.float64(corners[tri, ky])
+    caz = np.float64(corners[tri, kz])
+    cbx = np.float64(corners[tri, 3 + kx])
+    cby = np.float64(corners[tri, 3 + ky])
+    cbz = np.float64(corners[tri, 3 + kz])
+    ccx = np.float64(corners[tri, 6 + kx])
+    ccy = np.float64(corners[tri, 6 + ky])
+    ccz = np.float64(corners[tri, 6 + kz])
+    for r in range(PACKET_SIZE):
+        flags[r] = watertight_decision(cax, cay, caz, cbx, cby, cbz, ccx, ccy, ccz, okx[r], oky[r], okz[r], shx[r],
+                                       shy[r], shz[r], 0.0, best[r])[0]
+    hits = _lane_mask(flags) & group
+    # The scalar test's last condition, t < tmax, on the few lanes with a hit (no division per lane).
+    candidates = hits
+    while candidates != 0:
+        r = _lowest_lane(candidates)
+        candidates &= candidates - 1
+        _, t_scaled, det, _, _ = watertight_decision(cax, cay, caz, cbx, cby, cbz, ccx, ccy, ccz, okx[r], oky[r],
+                                                     okz[r], shx[r], shy[r], shz[r], 0.0, best[r])
+        if not t_scaled * (1.0 / det) < best[r]:
+            hits &= ~(1 << r)
+    return hits
+
+
+@njit(cache=True, inline="always")
+def _lanes_blocked(tri, corners, along, active, lanes3, lanes, flags):
+    """Mask of the active lanes whose ray hits triangle ``tri`` in (0, lanes[_BEST]) (once per
+    shear axis the active lanes use)."""
+    along_x, along_y, along_z = along
+    hits = 0
+    if active & along_x:
+        hits |= _lanes_blocked_along(tri, corners, 1, 2, 0, active & along_x, lanes3, lanes, flags)
+    if active & along_y:
+        hits |= _lanes_blocked_along(tri, corners, 2, 0, 1, active & along_y, lanes3, lanes, flags)
+    if active & along_z:
+        hits |= _lanes_blocked_along(tri, corners, 0, 1, 2, active & along_z, lanes3, lanes, flags)
+    return hits
+
+
+@njit(cache=True, error_model="numpy", _nrt=False)
+def _occluded_packets(nodes, splits, refs, box, corners, origins, directions, tmax, first_packet, end_packet, out):
+    """Packets ``first_packet .. end_packet - 1`` of :func:`occluded_batch_packets` (one parallel chunk)."""
+    scratch = packet_scratch()
+    lanes = scratch[1]
+    org = stack_empty((PACKET_SIZE, 3), np.float64)
+    dirs = stack_empty((PACKET_SIZE, 3), np.float64)
+    n = origins.shape[0]
+    for p in range(first_packet, end_packet):
+        start = p * PACKET_SIZE
+        m = min(PACKET_SIZE, n - start)
+        for r in range(PACKET_SIZE):
+            q = start + (r if r < m else 0)
+            for k in range(3):
+                org[r, k] = origins[q, k]
+                dirs[r, k] = directions[q, k]
+            lanes[_BEST, r] = tmax[q]
+        blocked = occluded_packet(nodes, splits, refs, box, corners, org, dirs, m, scratch)
+        for r in range(m):
+            out[start + r] = (blocked >> r) & 1 == 1
+
+
+@njit(cache=True, parallel=True)
+def occluded_batch_packets(nodes, splits, refs, box, corners, origins, directions, tmax, n_chunks, out):
+    """Occlusion of every ray over ``(0, tmax[i])`` into ``out`` (bool), consecutive rays in packets of
+    :data:`PACKET_SIZE` (:func:`occluded_packet`; watertight trees). For the tests."""
+    packets = (origins.shape[0] + PACKET_SIZE - 1) // PACKET_SIZE
+    per_chunk = (packets + n_chunks - 1) // n_chunks
+    for c in prange(n_chunks):
+        _occluded_packets(nodes, splits, refs, box, corners, origins, directions, tmax, c * per_chunk,
+                          min(packets, (c + 1) * per_chunk), out)
 
 
 @njit(cache=True, error_model="numpy", _nrt=False)

@@ -216,6 +216,9 @@ class RenderConfig:
         Distance between the two pinholes of a stereo pair, scene units.
     camera_packets : bool
         Trace camera rays in packets of coherent rays (same image as one by one).
+    shadow_packets : bool
+        Trace the shadow rays of the first hits of a packet's camera rays as one packet of
+        occlusion queries (watertight trees; same image as one by one).
     last_ray_max_emitters : int
         Trace a path's last ray against the emitter triangles one by one, and the tree only
         for occlusion, when the scene has at most this many emitter triangles (same image;
@@ -229,6 +232,7 @@ class RenderConfig:
     tile_size: int = 16
     eye_separation: float = 0.065
     camera_packets: bool = True
+    shadow_packets: bool = True
     last_ray_max_emitters: int = 16
 
     def __post_init__(self) -> None:

@@ -263,7 +263,7 @@ def tile_stride(tiles: int) -> int:
 
 
 def _run(flags, packed, cam, width, height, spp, max_depth, rr_depth, seed, first_sample, tile_size, aux, camera_packets,
-         last_ray_shortcut):
+         shadow_packets, last_ray_shortcut):
     rgb = np.zeros((height, width, 3), np.float32)
     variance = np.zeros((height, width, 3), np.float32)
     shape = (height, width) if aux else (0, 0)
@@ -273,7 +273,7 @@ def _run(flags, packed, cam, width, height, spp, max_depth, rr_depth, seed, firs
     tiles = -(-width // tile_size) * -(-height // tile_size)
     counts = np.zeros((tiles, 4), np.int64)
     args = (*flags, *packed.values(), cam, width, height, spp, max_depth, rr_depth, np.uint64(seed), first_sample, tile_size,
-            tile_stride(tiles), camera_packets, last_ray_shortcut, rgb, variance, albedo, normal, depth, counts)
+            tile_stride(tiles), camera_packets, shadow_packets, last_ray_shortcut, rgb, variance, albedo, normal, depth, counts)
     # numba resolves a ``literally`` kernel's argument types anew on every call: 70-100 ms
     # per call, measured 2026-12-02 on cbox-original (more than a whole 256x256 frame at
     # 1 spp). Once a specialisation exists, its machine code is called directly.
@@ -302,6 +302,7 @@ def render(
     tree: KDTree | None = None,
     first_sample: int = 0,
     camera_packets: bool | None = None,
+    shadow_packets: bool | None = None,
     last_ray_shortcut: bool | None = None,
     vector_spans: bool | None = None,
 ) -> RenderResult:
@@ -342,6 +343,10 @@ def render(
     camera_packets : bool, optional
         Trace camera rays in packets (default ``[render] camera_packets``); False traces
         them one by one, the oracle. The image is the same bit for bit.
+    shadow_packets : bool, optional
+        Trace the shadow rays from the first hits of a camera packet's rays as one packet of
+        occlusion queries (default ``[render] shadow_packets``; watertight trees only). False
+        traces them one by one, the oracle. The image is the same bit for bit.
     last_ray_shortcut : bool, optional
         Trace each path's last ray only as far as its radiance needs: the emitter triangles
         one by one, then an any-hit query for what lies before the nearest (or, with a sky,
@@ -384,6 +389,7 @@ def render(
         raise ValueError(f"first_sample must be an integer in [0, 2^62), got {first_sample!r}")
     first_sample = int(first_sample)
     camera_packets = bool(config.camera_packets if camera_packets is None else camera_packets)
+    shadow_packets = bool(config.shadow_packets if shadow_packets is None else shadow_packets)
     if last_ray_shortcut is None:
         last_ray_shortcut = int(scene.emitter_triangles.size) <= config.last_ray_max_emitters
     last_ray_shortcut = bool(last_ray_shortcut)
@@ -409,6 +415,7 @@ def render(
     _check_image_size(width, height, aux)
     tree = build_kdtree(scene, variant) if tree is None else tree
     vector_spans = tree.vector_spans if vector_spans is None else bool(vector_spans) and tree.watertight
+    shadow_packets = shadow_packets and tree.watertight
     packed = _pack(scene, tree, vector_spans)
     cam = _camera_array(camera, width, height)
     flags = tuple(name in chosen for name in FEATURES)
@@ -416,12 +423,13 @@ def render(
     rr_depth = config.rr_depth
 
     started = time.perf_counter()  # first call compiles (or loads from numba's cache)
-    _run(flags, packed, cam, 1, 1, 1, depth_limit, rr_depth, seed, 0, 1, aux, camera_packets, last_ray_shortcut)
+    _run(flags, packed, cam, 1, 1, 1, depth_limit, rr_depth, seed, 0, 1, aux, camera_packets, shadow_packets,
+         last_ray_shortcut)
     compile_seconds = time.perf_counter() - started
     started = time.perf_counter()
     rgb, variance, albedo, normal, depth, counts = _run(
         flags, packed, cam, width, height, spp, depth_limit, rr_depth, seed, first_sample, tile_size, aux, camera_packets,
-        last_ray_shortcut)
+        shadow_packets, last_ray_shortcut)
     seconds = time.perf_counter() - started
     if aux and not (depth > 0).any():
         warnings.warn(f"scene {scene.name!r}: no camera ray hits geometry (the camera looks at nothing)",
@@ -440,7 +448,7 @@ def render(
         "compile_seconds": compile_seconds,
         "spp": spp, "first_sample": first_sample, "max_depth": depth_limit, "rr_depth": rr_depth, "seed": int(seed),
         "width": width, "height": height, "tile_size": tile_size, "variant": tree.variant, "camera_packets": camera_packets,
-        "last_ray_shortcut": last_ray_shortcut, "vector_spans": vector_spans,
+        "shadow_packets": shadow_packets, "last_ray_shortcut": last_ray_shortcut, "vector_spans": vector_spans,
         "threads": numba.get_num_threads(),
     }
     return RenderResult(

@@ -113,6 +113,66 @@ def test_packets_give_the_scalar_kernels_hits_and_counters(case, config, seed, r
             assert_same(scalar, packet, f"{case!r}, {variant}, {ray_kind} rays, {label}")
 
 
+def occluded_both(tree, origins, directions, tmax):
+    """(scalar, packet) answers of the occlusion queries over (0, tmax)."""
+    origins, directions, tmin, tmax = validate_rays(origins, directions, 0.0, tmax)
+    n = len(origins)
+    scalar = _outputs(n)
+    scalar_kernels.trace_batch(tree.node_words, tree.node_splits, tree.refs, tree.box, tree.corners, origins,
+                               directions, tmin, tmax, True, tree.watertight, 4, *scalar)
+    packet = np.empty(n, np.bool_)
+    packet_kernels.occluded_batch_packets(tree.node_words, tree.node_splits, tree.refs, tree.box, tree.corners,
+                                          origins, directions, tmax, 4, packet)
+    return scalar[1] >= 0, packet
+
+
+@fast
+@given(case=stress_scenes(max_triangles=400), config=tree_configs, seed=st.integers(0, 2**16),
+       ray_kind=st.sampled_from(RAY_KINDS))
+def test_occlusion_packets_block_exactly_the_rays_the_scalar_kernel_blocks(case, config, seed, ray_kind):
+    """Rays that disagree on near children stay in an occlusion packet, so this holds for any
+    grouping: the rays as they come, and sharing their packet's first origin (shadow rays
+    of nearby hits are between the two). Segments of every length, some unbounded."""
+    config = dataclasses.replace(config, triangle_test="watertight")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)  # zero-area triangles left out (expected here)
+        trees = {variant: build_kdtree(case.scene, variant, config, cache=False) for variant in VARIANTS}
+    origins, directions = make_rays(ray_kind, case.scene, trees["naive"], 203, seed)
+    rng = np.random.default_rng(seed)
+    extent = float(np.abs(case.scene.vertices).max()) + 1.0
+    tmax = np.where(rng.random(len(origins)) < 0.2, np.inf, extent * rng.random(len(origins)) ** 3)
+    for variant, tree in trees.items():
+        for label, o in (("own origins", origins), ("shared origins", shared_origins(origins, packet_kernels.PACKET_SIZE))):
+            scalar, packet = occluded_both(tree, o, directions, tmax)
+            differ = np.flatnonzero(scalar != packet)
+            assert len(differ) == 0, f"{case!r}, {variant}, {ray_kind} rays, {label}: rays {differ[:5]} differ"
+
+
+def test_occlusion_packets_on_shadow_rays_of_a_real_scene():
+    """Shadow rays from the hits of jittered camera rays (8 a pixel, the renderer's order) to
+    points on car's light: the packets' answers are the scalar kernel's, with both answers common."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # MTL keys the loader does not use
+        scene = load_scene("car")
+    tree = build_kdtree(scene)
+    rng = np.random.default_rng(3)
+    samples = [camera_rays(scene.camera, 48, 40, jitter=True, rng=rng) for _ in range(8)]
+    origins = np.stack([s[0] for s in samples], axis=1).reshape(-1, 3)
+    directions = np.stack([s[1] for s in samples], axis=1).reshape(-1, 3)
+    t, triangle, _, _ = tree.intersect(origins, directions)
+    points = (origins + t[:, None] * directions)[triangle >= 0]
+    light = scene.vertices[scene.triangles[scene.emitter_triangles]].astype(np.float64)
+    pick = rng.integers(0, len(light), len(points))
+    weights = rng.dirichlet(np.ones(3), len(points))
+    targets = np.einsum("nk,nkc->nc", weights, light[pick])
+    to_light = targets - points
+    distance = np.linalg.norm(to_light, axis=1)
+    to_light /= distance[:, None]
+    scalar, packet = occluded_both(tree, points + 1e-4 * to_light, to_light, distance * (1.0 - 1e-4))
+    np.testing.assert_array_equal(scalar, packet)
+    assert 0.05 < scalar.mean() < 0.95
+
+
 def test_packets_split_at_a_plane_through_their_origin_fall_back_to_single_rays():
     """A shared origin on a split plane, directions on both sides of it: the rays disagree
     on the near child, the packet gives up, and the single rays give the scalar answers."""
@@ -174,8 +234,9 @@ def test_camera_ray_packets_on_real_scenes(name):
 
 @pytest.mark.parametrize(("name", "sky"), [("cbox-original", False), ("cbox-sphere", False), ("car", True)])
 def test_renders_with_camera_packets_equal_the_scalar_renders(name, sky):
-    """Bit for bit, with the aux buffers, at a size that leaves partial tiles and an spp that
-    makes packets span pixels; mirror and glass (cbox-sphere), textures (car) and a sky."""
+    """Camera and first shadow rays in packets against one by one: bit for bit, with the aux
+    buffers, at a size that leaves partial tiles and an spp that makes packets span pixels;
+    mirror and glass (cbox-sphere), textures (car) and a sky."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         scene = load_scene(name)
@@ -187,11 +248,13 @@ def test_renders_with_camera_packets_equal_the_scalar_renders(name, sky):
         images = {}
         for packets in (False, True):
             result = render(scene, spp=spp, max_depth=max_depth, seed=17, width=37, height=21, tile_size=16,
-                            tree=tree, features=ALL_FEATURES if sky else None, camera_packets=packets)
+                            tree=tree, features=ALL_FEATURES if sky else None, camera_packets=packets,
+                            shadow_packets=packets)
             images[packets] = result
         a, b = images[False], images[True]
         for field in ("rgb", "variance", "albedo", "normal", "depth"):
             assert np.array_equal(getattr(a, field), getattr(b, field)), f"{name}, max_depth {max_depth}: {field}"
         assert a.stats["rays"] == b.stats["rays"]
         assert b.stats["camera_packets"] and not a.stats["camera_packets"]
+        assert b.stats["shadow_packets"] and not a.stats["shadow_packets"]
         assert a.rgb.max() > 0.0
