@@ -141,6 +141,21 @@ def _load_lanes(box, origins, directions, n, watertight, lanes3, lanes, lane_int
 
 
 @njit(cache=True, inline="always")
+def _lane_shears(lanes3, lanes):
+    """The lanes' rows the watertight test reads: permuted origins, shears and closest hits (or tmax)."""
+    ok = lanes3[_PERMUTED]
+    return ok[0], ok[1], ok[2], lanes[_SHEAR_X], lanes[_SHEAR_Y], lanes[_SHEAR_Z], lanes[_BEST]
+
+
+@njit(cache=True, inline="always")
+def _permuted_corners(tri, corners, kx, ky, kz):
+    """Triangle ``tri``'s vertices a, b, c as float64, each in the permuted order ``(kx, ky, kz)``."""
+    return (np.float64(corners[tri, kx]), np.float64(corners[tri, ky]), np.float64(corners[tri, kz]),
+            np.float64(corners[tri, 3 + kx]), np.float64(corners[tri, 3 + ky]), np.float64(corners[tri, 3 + kz]),
+            np.float64(corners[tri, 6 + kx]), np.float64(corners[tri, 6 + ky]), np.float64(corners[tri, 6 + kz]))
+
+
+@njit(cache=True, inline="always")
 def _test_triangle_uniform(tri, corners, kx, ky, kz, n, active, lanes3, lanes, lane_ints, hit):
     """:func:`kdtrace._kdtree_traverse.intersect_triangle_watertight` for every lane at once.
 
@@ -148,23 +163,8 @@ def _test_triangle_uniform(tri, corners, kx, ky, kz, n, active, lanes3, lanes, l
     once and the lane loop is branch-free (selects, no early outs); each lane's arithmetic is the
     scalar test's, operation for operation, so its result is the same bit for bit.
     """
-    ok = lanes3[_PERMUTED]
-    okx = ok[0]
-    oky = ok[1]
-    okz = ok[2]
-    shx = lanes[_SHEAR_X]
-    shy = lanes[_SHEAR_Y]
-    shz = lanes[_SHEAR_Z]
-    best = lanes[_BEST]
-    cax = np.float64(corners[tri, kx])
-    cay = np.float64(corners[tri, ky])
-    caz = np.float64(corners[tri, kz])
-    cbx = np.float64(corners[tri, 3 + kx])
-    cby = np.float64(corners[tri, 3 + ky])
-    cbz = np.float64(corners[tri, 3 + kz])
-    ccx = np.float64(corners[tri, 6 + kx])
-    ccy = np.float64(corners[tri, 6 + ky])
-    ccz = np.float64(corners[tri, 6 + kz])
+    okx, oky, okz, shx, shy, shz, best = _lane_shears(lanes3, lanes)
+    cax, cay, caz, cbx, cby, cbz, ccx, ccy, ccz = _permuted_corners(tri, corners, kx, ky, kz)
     u_out = lanes[_U]
     v_out = lanes[_V]
     tests = lane_ints[_TESTS]
@@ -483,23 +483,8 @@ def _lowest_lane(mask):
 def _lanes_blocked_along(tri, corners, kx, ky, kz, group, lanes3, lanes, flags):
     """Mask of the lanes whose ray hits triangle ``tri`` in (0, lanes[_BEST]), for shear axes
     ``kx, ky, kz``: the scalar test's decision and its ``t < tmax``, branch-free over the lanes."""
-    ok = lanes3[_PERMUTED]
-    okx = ok[0]
-    oky = ok[1]
-    okz = ok[2]
-    shx = lanes[_SHEAR_X]
-    shy = lanes[_SHEAR_Y]
-    shz = lanes[_SHEAR_Z]
-    best = lanes[_BEST]
-    cax = np.float64(corners[tri, kx])
-    cay = np.float64(corners[tri, ky])
-    caz = np.float64(corners[tri, kz])
-    cbx = np.float64(corners[tri, 3 + kx])
-    cby = np.float64(corners[tri, 3 + ky])
-    cbz = np.float64(corners[tri, 3 + kz])
-    ccx = np.float64(corners[tri, 6 + kx])
-    ccy = np.float64(corners[tri, 6 + ky])
-    ccz = np.float64(corners[tri, 6 + kz])
+    okx, oky, okz, shx, shy, shz, best = _lane_shears(lanes3, lanes)
+    cax, cay, caz, cbx, cby, cbz, ccx, ccy, ccz = _permuted_corners(tri, corners, kx, ky, kz)
     for r in range(PACKET_SIZE):
         flags[r] = watertight_decision(cax, cay, caz, cbx, cby, cbz, ccx, ccy, ccz, okx[r], oky[r], okz[r], shx[r],
                                        shy[r], shz[r], 0.0, best[r])[0]
