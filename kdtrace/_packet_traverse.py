@@ -20,8 +20,8 @@ disagreeing: each goes where its own interval reaches. On shadow rays from jitte
 camera hits towards the light (8 a pixel, the renderer's order) a packet of 16 visited 9.6
 nodes on cbox-original and 19.7 on car, where the 16 rays one by one visit 16 x 8.1 and
 16 x 10.6; the packet's lane work (about 700 cycles to load 16 rays, about 150 a split and
-90 a triangle for each shear axis in use, measured with the cycle counter) leaves 1.8x
-(cbox-original) and 1.2x (car) over one-by-one rays in a batch, 2026-12-05.
+90 a triangle for each shear axis in use, measured with the cycle counter) leaves 2.1x
+(cbox-original) and 1.4x (car) over one-by-one rays in a batch, 2026-12-05.
 """
 
 from __future__ import annotations
