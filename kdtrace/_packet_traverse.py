@@ -20,8 +20,8 @@ disagreeing: each goes where its own interval reaches. On shadow rays from jitte
 camera hits towards the light (8 a pixel, the renderer's order) a packet of 16 visited 9.6
 nodes on cbox-original and 19.7 on car, where the 16 rays one by one visit 16 x 8.1 and
 16 x 10.6; the packet's lane work (about 700 cycles to load 16 rays, about 150 a split and
-90 a triangle for each shear axis in use, measured with the cycle counter) leaves 2.1x
-(cbox-original) and 1.4x (car) over one-by-one rays in a batch, 2026-12-05.
+90 a triangle for each shear axis in use, measured with the cycle counter) leaves 2.4x
+(cbox-original) and 1.6x (car) over one-by-one rays in a batch, 2026-12-05.
 """
 
 from __future__ import annotations
@@ -471,34 +471,16 @@ def _popcount(mask):
 
 
 @njit(cache=True, inline="always")
-def _lowest_lane(mask):
-    """Index of the lowest set bit of a non-zero lane mask."""
-    lane = 0
-    while (mask >> lane) & 1 == 0:
-        lane += 1
-    return lane
-
-
-@njit(cache=True, inline="always")
 def _lanes_blocked_along(tri, corners, kx, ky, kz, group, lanes3, lanes, flags):
     """Mask of the lanes whose ray hits triangle ``tri`` in (0, lanes[_BEST]), for shear axes
     ``kx, ky, kz``: the scalar test's decision and its ``t < tmax``, branch-free over the lanes."""
     okx, oky, okz, shx, shy, shz, best = _lane_shears(lanes3, lanes)
     cax, cay, caz, cbx, cby, cbz, ccx, ccy, ccz = _permuted_corners(tri, corners, kx, ky, kz)
     for r in range(PACKET_SIZE):
-        flags[r] = watertight_decision(cax, cay, caz, cbx, cby, cbz, ccx, ccy, ccz, okx[r], oky[r], okz[r], shx[r],
-                                       shy[r], shz[r], 0.0, best[r])[0]
-    hits = _lane_mask(flags) & group
-    # The scalar test's last condition, t < tmax, on the few lanes with a hit (no division per lane).
-    candidates = hits
-    while candidates != 0:
-        r = _lowest_lane(candidates)
-        candidates &= candidates - 1
-        _, t_scaled, det, _, _ = watertight_decision(cax, cay, caz, cbx, cby, cbz, ccx, ccy, ccz, okx[r], oky[r],
-                                                     okz[r], shx[r], shy[r], shz[r], 0.0, best[r])
-        if not t_scaled * (1.0 / det) < best[r]:
-            hits &= ~(1 << r)
-    return hits
+        hit, t_scaled, det, _, _ = watertight_decision(cax, cay, caz, cbx, cby, cbz, ccx, ccy, ccz, okx[r], oky[r],
+                                                       okz[r], shx[r], shy[r], shz[r], 0.0, best[r])
+        flags[r] = hit & (t_scaled * (1.0 / det) < best[r])
+    return _lane_mask(flags) & group
 
 
 @njit(cache=True, inline="always")
