@@ -54,6 +54,11 @@ class KDTreeConfig:
         The path tracer's ray queries on watertight trees test a node's triangles all at once
         before one by one (same images; ``kdtrace._kdtree_traverse.span_blocked``). Not a build
         parameter either.
+    regroup_min_bytes : int
+        Batch ray queries (``KDTree.intersect``, ``KDTree.occluded``) on trees whose traversal data
+        and triangle corners take at least this many bytes trace their rays grouped by origin cell
+        and direction octant (``kdtrace._ray_order``), results in the caller's order. Not a build
+        parameter.
     """
 
     traversal_cost: float = 1.0
@@ -67,6 +72,7 @@ class KDTreeConfig:
     clip_triangles: bool = False
     triangle_test: str = "watertight"
     vector_spans: bool = True
+    regroup_min_bytes: int = 2_000_000
 
     def __post_init__(self) -> None:
         if self.traversal_cost < 0 or self.intersection_cost <= 0:

@@ -24,6 +24,7 @@ from kdtrace import _kdtree_build as build_kernels
 from kdtrace import _kdtree_layout as layout_kernels
 from kdtrace import _kdtree_traverse as traverse_kernels
 from kdtrace import _packet_traverse as packet_kernels
+from kdtrace import _ray_order as ray_order
 from kdtrace.cache import cache_root, content_key, load_npz, save_npz
 from kdtrace.config import DEFAULT_CONFIG, KDTreeConfig
 from kdtrace.scene import Scene
@@ -48,6 +49,18 @@ class TraceCounters:
         }
 
 
+#: KDTreeConfig fields that choose how a tree is queried, not how it is built (left out of its
+#: cache key), in the order of :class:`KDTree`'s arguments after ``stats``.
+TRAVERSAL_CHOICES = ("triangle_test", "vector_spans", "regroup_min_bytes")
+
+
+def _in_order(traced: np.ndarray, order: np.ndarray) -> np.ndarray:
+    """Results of the rays ``order`` (traced in that order) at the rays' own indices."""
+    out = np.empty_like(traced)
+    out[order] = traced
+    return out
+
+
 class KDTree:
     """A built KD-tree over one scene's triangles.
 
@@ -60,6 +73,10 @@ class KDTree:
         The path tracer's queries on this tree test a node's triangles all at once before one by
         one (``KDTreeConfig.vector_spans``; watertight trees only). The batch queries
         (:meth:`intersect`, :meth:`occluded`) test them one by one.
+    regroups : bool
+        The batch queries trace a batch grouped by origin cell and direction octant unless told
+        otherwise: the tree's traversal data and triangle corners take at least
+        ``KDTreeConfig.regroup_min_bytes``.
     stats : dict
         nodes, leaves, empty_leaves, max_depth, triangle_references (leaf + interior),
         leaf_references, interior_references, sah_cost, tree_bytes (the build's arrays: 17 bytes
@@ -71,7 +88,7 @@ class KDTree:
     """
 
     def __init__(self, scene: Scene, variant: str, arrays: dict[str, np.ndarray], stats: dict,
-                 triangle_test: str = "watertight", vector_spans: bool = True):
+                 triangle_test: str = "watertight", vector_spans: bool = True, regroup_min_bytes: int = 0):
         self.variant = variant
         self.triangle_test = triangle_test
         self.watertight = triangle_test == "watertight"
@@ -90,6 +107,7 @@ class KDTree:
         self.node_splits = self.node_words.view(np.float32)
         self.stats = {**stats, "traversal_bytes": int(self.packed_nodes.nbytes + self.refs.nbytes)}
         self.corners = np.ascontiguousarray(scene.vertices[scene.triangles].reshape(-1, 9))
+        self.regroups = self.stats["traversal_bytes"] + self.corners.nbytes >= regroup_min_bytes
         self.last_counters: TraceCounters | None = None
 
     @functools.cached_property
@@ -120,9 +138,16 @@ class KDTree:
     def __repr__(self) -> str:
         return f"KDTree(variant={self.variant!r}, nodes={self.stats['nodes']}, references={self.stats['triangle_references']})"
 
-    def _trace(self, origins, directions, tmin, tmax, any_hit, packets=False):
+    def _trace(self, origins, directions, tmin, tmax, any_hit, packets=False, regroup=None):
         origins, directions, tmin, tmax = validate_rays(origins, directions, tmin, tmax)
         n = len(origins)
+        regroup = self.regroups and not packets if regroup is None else bool(regroup)
+        if regroup and packets:
+            raise ValueError("packets trace consecutive rays together: pass packets or regroup, not both")
+        order = None
+        if regroup and n > 1:
+            order = ray_order.regroup_order(origins, directions, self.box)
+            origins, directions, tmin, tmax = ray_order.gather_rays(order, origins, directions, tmin, tmax)
         out_t = np.empty(n)
         out_tri = np.empty(n, np.int32)
         out_u = np.empty(n)
@@ -142,10 +167,13 @@ class KDTree:
             traverse_kernels.trace_batch(
                 self.node_words, self.node_splits, self.refs, self.box, self.corners, origins, directions, tmin, tmax,
                 any_hit, self.watertight, n_chunks, *outputs)
+        if order is not None:  # back to the caller's order
+            outputs = tuple(_in_order(values, order) for values in outputs)
+            out_t, out_tri, out_u, out_v, visited, tests = outputs
         self.last_counters = TraceCounters(visited, tests)
         return out_t, out_tri, out_u, out_v
 
-    def intersect(self, origins, directions, tmin=0.0, tmax=np.inf, packets=False):
+    def intersect(self, origins, directions, tmin=0.0, tmax=np.inf, packets=False, regroup=None):
         """Closest hit of every ray ``o + t d`` with ``tmin < t < tmax``.
 
         Parameters
@@ -158,6 +186,10 @@ class KDTree:
             Trace consecutive rays in packets of :data:`kdtrace._packet_traverse.PACKET_SIZE`
             (as the path tracer traces its camera rays; tmin must be 0): faster for coherent
             rays such as a camera's, with the same results and counters.
+        regroup : bool, optional
+            Trace the rays grouped by origin cell and direction octant
+            (:mod:`kdtrace._ray_order`), results in the caller's order: the same results and
+            counters. Default :attr:`regroups` (never with ``packets``).
 
         Returns
         -------
@@ -165,9 +197,9 @@ class KDTree:
         tri : (N,) int32, index into ``scene.triangles``, -1 on a miss
         u, v : (N,) float64, barycentric weights of vertices 1 and 2
         """
-        return self._trace(origins, directions, tmin, tmax, False, packets)
+        return self._trace(origins, directions, tmin, tmax, False, packets, regroup)
 
-    def occluded(self, origins, directions, tmax, tmin=0.0):
+    def occluded(self, origins, directions, tmax, tmin=0.0, regroup=None):
         """True for rays that hit anything with ``tmin < t < tmax`` (shadow rays).
 
         Parameters
@@ -180,12 +212,15 @@ class KDTree:
             it, as a blocker. Pass ``np.inf`` to test whole rays.
         tmin : float or (N,) array
             Start of each segment.
+        regroup : bool, optional
+            Trace the rays grouped by origin cell and direction octant, as :meth:`intersect`
+            does; default :attr:`regroups`.
 
         Returns
         -------
         (N,) bool
         """
-        t, _, _, _ = self._trace(origins, directions, tmin, tmax, True)
+        t, _, _, _ = self._trace(origins, directions, tmin, tmax, True, regroup=regroup)
         return np.isfinite(t)
 
 
@@ -384,7 +419,8 @@ def build_kdtree(
         )
     # The triangle test and the vector span test are traversal choices: the trees are the same.
     build_parameters = {k: v for k, v in dataclasses.asdict(config).items()
-                        if k not in ("triangle_test", "vector_spans")}
+                        if k not in TRAVERSAL_CHOICES}
+    traversal = [getattr(config, name) for name in TRAVERSAL_CHOICES]
     key = content_key("kdtree", BUILDER_VERSION, variant, scene.geometry_hash(), build_parameters)
     path = cache_root() / "kdtrees" / f"{scene.name}-{variant}-{key[:20]}.npz"
     if cache:
@@ -392,9 +428,9 @@ def build_kdtree(
         if loaded is not None and set(_TREE_ARRAYS) <= set(loaded[0]):
             arrays, stats = loaded
             stats = dict(stats, cache_hit=True)
-            return KDTree(scene, variant, arrays, stats, config.triangle_test, config.vector_spans)
+            return KDTree(scene, variant, arrays, stats, *traversal)
     arrays, stats = _build_arrays(scene, variant, config)
     stats["cache_hit"] = False
     if cache:
         save_npz(path, arrays, stats)
-    return KDTree(scene, variant, arrays, stats, config.triangle_test, config.vector_spans)
+    return KDTree(scene, variant, arrays, stats, *traversal)

@@ -56,7 +56,7 @@ from reports.notes import ReportNote
 from reports.paper_figures import TABLE1
 
 #: Version of the row layout; rows measured with another version are measured again.
-ROW_VERSION = 8
+ROW_VERSION = 9
 #: Timed rounds per ray set (each times every intersector once; medians), after one warm-up call.
 TIMING_ROUNDS = 7
 #: Frame renders per tree, in alternating order (naive-local, local-naive, ...): even, so
@@ -205,6 +205,7 @@ def scene_row(name: str, config: Config, profile_name: str, progress: tqdm) -> d
                     "sah_cost", "cache_hit"):
             row[f"{variant}_{key}"] = tree.stats[key]
     row["reference_reduction"] = 1.0 - row["local_triangle_references"] / row["naive_triangle_references"]
+    row["batches_regrouped"] = bool(trees["local"].regroups)
 
     ray_sets = timing_ray_sets(scene, profile)
     for kind, (origins, directions) in ray_sets.items():
@@ -630,6 +631,7 @@ def markdown_table(table: pd.DataFrame) -> str:
                                                      f"{row['incoherent_mrays_embree']:.2f}",
             "shadow Mrays/s naive/local/Embree": (f"{row['occlusion_mrays_naive']:.2f} / {row['occlusion_mrays_local']:.2f} / "
                                                   f"{row['occlusion_mrays_embree']:.2f}"),
+            "regrouped": "yes" if row.get("batches_regrouped") else "no",
             "local nodes / tests per ray, primary": _work(row, "primary"),
             "incoherent": _work(row, "incoherent"),
             "frame s naive/local": _pair(row["frame_seconds_naive"], row["frame_seconds_local"], 3),
@@ -654,7 +656,11 @@ def write_outputs(table: pd.DataFrame, config: Config, profile_name: str, out_di
         f"{profile.frame_spp} spp (ray casting only, no shading; our trees trace them as the path tracer traces its "
         f"camera rays, pixel after pixel with each pixel's samples together, in packets of 16 consecutive "
         f"rays); incoherent rays: {profile.timing_rays:,} random "
-        f"rays; shadow rays: {profile.timing_rays:,} any-hit rays from surface points to points on the lights; "
+        f"rays; shadow rays: {profile.timing_rays:,} any-hit rays from surface points to points on the lights. "
+        f"Our trees trace the incoherent and shadow rays grouped by origin cell and direction octant on the scenes "
+        f"marked \"regrouped\" (trees of at least {config.kdtree.regroup_min_bytes / 1e6:g} MB of traversal data and "
+        f"triangle corners; the grouping's key, sort and copies are in the timed call; Embree traces the rays as "
+        f"given). "
         f"Mrays/s are medians of {TIMING_ROUNDS} rounds after a warm-up, the three intersectors taking turns in each "
         f"round; local/Embree is the median of the per-round ratios. Frame seconds: the path tracer "
         f"(max_depth {config.render.max_depth}, no auxiliary buffers) renders the same "
