@@ -88,7 +88,8 @@ class KDTree:
     """
 
     def __init__(self, scene: Scene, variant: str, arrays: dict[str, np.ndarray], stats: dict,
-                 triangle_test: str = "watertight", vector_spans: bool = True, regroup_min_bytes: int = 0):
+                 triangle_test: str = "watertight", vector_spans: bool = True,
+                 regroup_min_bytes: int = KDTreeConfig.regroup_min_bytes):
         self.variant = variant
         self.triangle_test = triangle_test
         self.watertight = triangle_test == "watertight"
