@@ -258,3 +258,46 @@ def test_renders_with_camera_packets_equal_the_scalar_renders(name, sky):
         assert b.stats["camera_packets"] and not a.stats["camera_packets"]
         assert b.stats["shadow_packets"] and not a.stats["shadow_packets"]
         assert a.rgb.max() > 0.0
+
+
+@njit(error_model="numpy")
+def _loaded_lanes(box, origins, directions, tmax, n):
+    """The lane state :func:`kdtrace._packet_traverse._load_lanes` fills, copied out."""
+    lanes3, lanes, lane_ints, _, _, _ = packet_kernels.packet_scratch()
+    for r in range(n):
+        lanes[packet_kernels._BEST, r] = tmax[r]
+    active, along_x, along_y, along_z = packet_kernels._load_lanes(box, origins, directions, n, True, lanes3, lanes,
+                                                                   lane_ints)
+    return active, along_x | (along_y << 16) | (along_z << 32), lanes3.copy(), lanes.copy(), lane_ints.copy()
+
+
+def test_loaded_lanes_hold_the_scalar_walks_interval_reciprocals_and_shear():
+    """Lane for lane, the branch-free load gives what ``clip_to_box``, the reciprocals and
+    ``ray_shear`` give one ray at a time: origins on and off the box, zero components of both signs."""
+    rng = np.random.default_rng(21)
+    box = np.array([-1.0, -2.0, 0.0, 1.0, 2.0, 3.0])
+    size = packet_kernels.PACKET_SIZE
+    for trial in range(200):
+        n = int(rng.integers(1, size + 1))
+        origins = rng.uniform(-2.0, 3.5, (n, 3))
+        origins[rng.random((n, 3)) < 0.15] = 1.0  # on a face of the box, or in its planes
+        directions = rng.normal(size=(n, 3))
+        zero = rng.random((n, 3)) < 0.2
+        directions[zero] = np.where(rng.random(zero.sum()) < 0.5, 0.0, -0.0)
+        directions[~directions.any(axis=1), 2] = 1.0
+        tmax = np.where(rng.random(n) < 0.2, np.inf, rng.uniform(0.0, 5.0, n))
+        active, along, lanes3, lanes, lane_ints = _loaded_lanes(box, origins, directions, tmax, n)
+        for r in range(n):
+            o, d = origins[r], directions[r]
+            ent, ext = scalar_kernels.clip_to_box(box, *o, *d, 0.0, tmax[r])
+            assert (lanes[packet_kernels._ENT, r], lanes[packet_kernels._EXT, r]) == (ent, ext), (trial, r)
+            assert bool(active >> r & 1) == (ent <= ext)
+            inverse = [1.0 / c if c != 0.0 else np.inf for c in d]
+            np.testing.assert_array_equal(lanes3[packet_kernels._INVERSE, :, r], inverse)
+            kx, ky, kz, sx, sy, sz = scalar_kernels.ray_shear(*d)
+            assert tuple(lane_ints[packet_kernels._KX:packet_kernels._KZ + 1, r]) == (kx, ky, kz)
+            assert (along >> (16 * kz + r)) & 1 == 1
+            np.testing.assert_array_equal(lanes3[packet_kernels._PERMUTED, :, r], o[[kx, ky, kz]])
+            np.testing.assert_array_equal(lanes[[packet_kernels._SHEAR_X, packet_kernels._SHEAR_Y,
+                                                 packet_kernels._SHEAR_Z], r], [sx, sy, sz])
+        assert active >> n == 0  # lanes past n stay inactive
