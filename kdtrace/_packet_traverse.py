@@ -545,6 +545,15 @@ def _lanes_blocked(tri, corners, along, active, lanes3, lanes, flags):
     return hits
 
 
+@njit(cache=True, inline="always")
+def _copy_packet_rays(origins, directions, start, m, org, dirs):
+    """Rays ``start .. start + m - 1`` of a batch into a packet's ``org`` and ``dirs`` rows ``0 .. m - 1``."""
+    for r in range(m):
+        for k in range(3):
+            org[r, k] = origins[start + r, k]
+            dirs[r, k] = directions[start + r, k]
+
+
 @njit(cache=True, error_model="numpy", _nrt=False)
 def _occluded_packets(nodes, splits, refs, box, corners, origins, directions, tmax, first_packet, end_packet, out):
     """Packets ``first_packet .. end_packet - 1`` of :func:`occluded_batch_packets` (one parallel chunk)."""
@@ -556,12 +565,9 @@ def _occluded_packets(nodes, splits, refs, box, corners, origins, directions, tm
     for p in range(first_packet, end_packet):
         start = p * PACKET_SIZE
         m = min(PACKET_SIZE, n - start)
-        for r in range(PACKET_SIZE):
-            q = start + (r if r < m else 0)
-            for k in range(3):
-                org[r, k] = origins[q, k]
-                dirs[r, k] = directions[q, k]
-            lanes[_BEST, r] = tmax[q]
+        _copy_packet_rays(origins, directions, start, m, org, dirs)
+        for r in range(m):  # _load_lanes fills the lanes past m from ray 0
+            lanes[_BEST, r] = tmax[start + r]
         blocked = occluded_packet(nodes, splits, refs, box, corners, org, dirs, m, scratch)
         for r in range(m):
             out[start + r] = (blocked >> r) & 1 == 1
@@ -597,11 +603,9 @@ def _trace_packets(nodes, splits, refs, box, corners, origins, directions, tmax,
     for p in range(first_packet, end_packet):
         start = p * packet_size
         m = min(packet_size, n - start)
+        _copy_packet_rays(origins, directions, start, m, org, dirs)
         same_tmax = True
         for r in range(m):
-            for k in range(3):
-                org[r, k] = origins[start + r, k]
-                dirs[r, k] = directions[start + r, k]
             same_tmax = same_tmax and tmax[start + r] == tmax[start]
         if same_tmax and trace_packet(nodes, splits, refs, box, corners, org, dirs, m, tmax[start], watertight,
                                       scratch):
