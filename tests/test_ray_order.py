@@ -105,10 +105,10 @@ def _two_triangles() -> Scene:
 
 def test_trees_regroup_by_their_size_and_never_packets():
     scene = _two_triangles()
-    assert build_kdtree(scene, config=KDTreeConfig(regroup_min_bytes=0), cache=False).regroups
+    always = build_kdtree(scene, config=KDTreeConfig(regroup_min_bytes=0), cache=False)
+    assert always.regroups
     small = build_kdtree(scene, config=KDTreeConfig(), cache=False)  # a few hundred bytes, below the default
     assert not small.regroups
-    always = build_kdtree(scene, config=KDTreeConfig(regroup_min_bytes=0), cache=False)
     origins = np.tile([0.2, 0.2, -1.0], (20, 1))
     directions = np.tile([0.0, 0.0, 1.0], (20, 1))
     t, tri, _, _ = always.intersect(origins, directions, packets=True)  # packets: the batch's own order
