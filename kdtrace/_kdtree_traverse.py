@@ -189,19 +189,27 @@ def no_spans(corners):
     return corners.reshape(-1)[:0]
 
 
-#: Lanes of :func:`span_blocked`'s passes: 8 float64 values fill an AVX-512 register. ``span_corners``
+#: Lanes of :func:`span_hits`' passes: 8 float64 values fill an AVX-512 register. ``span_corners``
 #: ends with ``SPAN_LANES`` zeros, so a pass may read past the last span.
 SPAN_LANES = 8
 
 
+#: Bits of :func:`span_hits`' mask: lanes ``0 .. SPAN_MASK_BITS - 2`` one bit each, the rest the last bit.
+SPAN_MASK_BITS = 64
+
+
 @njit(cache=True, inline="always")
-def span_blocked(span_corners, first, count, okx, oky, okz, kx, ky, kz, sx, sy, sz, tmin, tmax):
-    """Whether any of the references ``first .. first + count - 1`` (one node's span) is hit in
-    (tmin, tmax).
+def span_hits(span_corners, first, count, okx, oky, okz, kx, ky, kz, sx, sy, sz, tmin, tmax):
+    """Which of the references ``first .. first + count - 1`` (one node's span) are hit in
+    (tmin, tmax), as a bit mask: bit ``k`` for reference ``first + k``, and the last bit
+    (:data:`SPAN_MASK_BITS` - 1) for any of the references from there on.
 
     :func:`watertight_decision` for every reference of the span, with no early out and no
     branch per triangle, so the loop runs on vector registers. ``span_corners`` holds each
     span's corners as a block of 9 runs of ``count`` (:attr:`kdtrace.kdtree.KDTree.span_corners`).
+    A query then tests one by one only the references whose bit is set (and, for the last
+    bit, all from there on): those are the only ones the one-by-one test can find hit, because
+    the decision is the same, bit for bit.
 
     The loop runs to ``count`` rounded up to a multiple of :data:`SPAN_LANES`, and the lanes
     past ``count`` (reading the next run's corners, or the array's zero padding at its end)
@@ -211,7 +219,7 @@ def span_blocked(span_corners, first, count, okx, oky, okz, kx, ky, kz, sx, sy, 
     cbox-original and 1.03x on cbox-sphere, car and Crytek Sponza unchanged (256x256, 8 spp,
     max_depth 3, 2 threads, separate processes, 3 rounds, 2026-12-05). Same hits.
     """
-    hit = False
+    mask = np.uint64(0)
     n = np.uint64(count)
     block = np.uint64(9) * np.uint64(first)
     akx = block + np.uint64(kx) * n
@@ -220,12 +228,14 @@ def span_blocked(span_corners, first, count, okx, oky, okz, kx, ky, kz, sx, sy, 
     b = np.uint64(3) * n
     c = np.uint64(6) * n
     lanes = np.uint64(SPAN_LANES)
+    last_bit = np.uint64(SPAN_MASK_BITS - 1)
     for k in range((n + lanes - np.uint64(1)) & ~(lanes - np.uint64(1))):
-        hit |= (k < n) & watertight_decision(
+        hit = (k < n) & watertight_decision(
             span_corners[akx + k], span_corners[aky + k], span_corners[akz + k], span_corners[b + akx + k],
             span_corners[b + aky + k], span_corners[b + akz + k], span_corners[c + akx + k],
             span_corners[c + aky + k], span_corners[c + akz + k], okx, oky, okz, sx, sy, sz, tmin, tmax)[0]
-    return hit
+        mask |= np.uint64(hit) << min(k, last_bit)
+    return mask
 
 
 @njit(cache=True, inline="always")
@@ -304,8 +314,8 @@ def trace_ray(
 
     With the watertight test and a non-empty ``span_corners`` (each node's span of references
     as a block, :attr:`kdtrace.kdtree.KDTree.span_corners`), a query first asks
-    :func:`span_blocked` whether a node's span holds any hit in (tmin, closest hit so far), all
-    its triangles at once, and tests them one by one only where it does: the same hit, the same
+    :func:`span_hits` which of a node's triangles are hit in (tmin, closest hit so far), all
+    of them at once, and tests one by one only those: the same hit, the same
     counters, and a span without a hit (most of them on a shadow ray's way to a light, all but
     the last on a closest-hit walk) costs no branch per triangle. Measured against one-by-one
     tests in separate processes (2026-12-05; 256x256, 8 spp, max_depth 3, 2 threads): frames
@@ -343,13 +353,21 @@ def trace_ray(
         visited += 1
         word, axis, first, count = decode_node(nodes, node, spans)
         if count > 0:
-            if vector_spans and not span_blocked(span_corners, first, count, okx, oky, okz, kx, ky, kz, sx, sy, sz,
-                                                 tmin, best_t):
-                tests += count  # what testing them one by one would have counted
-                count = 0
+            may_hit = np.uint64(0)  # vector spans: the span's mask (span_hits)
+            if vector_spans:
+                may_hit = span_hits(span_corners, first, count, okx, oky, okz, kx, ky, kz, sx, sy, sz, tmin, best_t)
+                tests += count  # what testing them one by one counts (less on an any-hit's return, below)
             for k in range(first, first + count):
+                if vector_spans:
+                    # Test only the references the mask may find hit; stop when no bit is left.
+                    lane = min(np.uint64(k - first), np.uint64(SPAN_MASK_BITS - 1))
+                    if (may_hit >> lane) == 0:
+                        break
+                    if (may_hit >> lane) & np.uint64(1) == 0:
+                        continue
+                else:
+                    tests += 1
                 tri = refs[np.uint64(k)]
-                tests += 1
                 t, u, v = intersect_tree_triangle(watertight, tri, corners, ox, oy, oz, dx, dy, dz, setup, tmin, best_t)
                 if t < best_t:
                     best_t = t
@@ -357,6 +375,8 @@ def trace_ray(
                     best_u = u
                     best_v = v
                     if any_hit:
+                        if vector_spans:
+                            tests -= first + count - 1 - k  # one by one stops here
                         return best_t, best_tri, best_u, best_v, visited, tests
         if axis != LEAF:
             left = np.uint64(word >> 3)
@@ -451,8 +471,8 @@ def store_hit(outputs, i, t, tri, u, v, visited, tests):
 
 
 @njit(cache=True, _nrt=False)
-def _trace_rays(nodes, splits, refs, box, corners, origins, directions, tmin, tmax, any_hit, watertight, first, end,
-                out_t, out_tri, out_u, out_v, out_visited, out_tests):
+def _trace_rays(nodes, splits, refs, box, corners, span_corners, origins, directions, tmin, tmax, any_hit, watertight,
+                first, end, out_t, out_tri, out_u, out_v, out_visited, out_tests):
     """Rays ``first .. end - 1`` of :func:`trace_batch` (one parallel chunk).
 
     :func:`trace_ray` is inlined once with ``any_hit`` a constant True and once False, so
@@ -464,20 +484,15 @@ def _trace_rays(nodes, splits, refs, box, corners, origins, directions, tmin, tm
     """
     st_node, st_ent, st_ext, ray = ray_scratch()
     outputs = (out_t, out_tri, out_u, out_v, out_visited, out_tests)
-    # Triangles one by one: with the vector span test (separate processes, 2026-12-05) Table 1's
-    # shadow rays ran faster on the Cornell boxes and car but slower on the deep trees near the
-    # 0.35x-Embree target (samurai-monastery 0.35-0.37 -> 0.31-0.35, dabrovic-sponza 0.73-0.75 ->
-    # 0.67-0.69, bunny 0.34-0.35 -> 0.26-0.33), and bunny's incoherent rays 0.38-0.43 -> 0.35-0.36.
-    one_by_one = no_spans(corners)
     for i in range(first, end):
         ox, oy, oz = origins[i, 0], origins[i, 1], origins[i, 2]
         dx, dy, dz = directions[i, 0], directions[i, 1], directions[i, 2]
         if any_hit:
-            t, tri, u, v, visited, tests = trace_ray(nodes, splits, refs, box, corners, one_by_one, ox, oy, oz,
+            t, tri, u, v, visited, tests = trace_ray(nodes, splits, refs, box, corners, span_corners, ox, oy, oz,
                                                      dx, dy, dz, tmin[i], tmax[i], True, watertight, st_node, st_ent,
                                                      st_ext, ray)
         else:
-            t, tri, u, v, visited, tests = trace_ray(nodes, splits, refs, box, corners, one_by_one, ox, oy, oz,
+            t, tri, u, v, visited, tests = trace_ray(nodes, splits, refs, box, corners, span_corners, ox, oy, oz,
                                                      dx, dy, dz, tmin[i], tmax[i], False, watertight, st_node, st_ent,
                                                      st_ext, ray)
         store_hit(outputs, i, t, tri, u, v, visited, tests)
@@ -485,7 +500,7 @@ def _trace_rays(nodes, splits, refs, box, corners, origins, directions, tmin, tm
 
 @njit(cache=True, parallel=True)
 def trace_batch(
-    nodes, splits, refs, box, corners,
+    nodes, splits, refs, box, corners, span_corners,
     origins, directions, tmin, tmax, any_hit, watertight, n_chunks,
     out_t, out_tri, out_u, out_v, out_visited, out_tests,
 ):
@@ -493,8 +508,8 @@ def trace_batch(
     n = origins.shape[0]
     chunk = (n + n_chunks - 1) // n_chunks
     for c in prange(n_chunks):
-        _trace_rays(nodes, splits, refs, box, corners, origins, directions, tmin, tmax, any_hit, watertight,
-                    c * chunk, min(n, (c + 1) * chunk), out_t, out_tri, out_u, out_v, out_visited, out_tests)
+        _trace_rays(nodes, splits, refs, box, corners, span_corners, origins, directions, tmin, tmax, any_hit,
+                    watertight, c * chunk, min(n, (c + 1) * chunk), out_t, out_tri, out_u, out_v, out_visited, out_tests)
 
 
 # numba's cache checks this file only; recompile when a module inlined from here changes.

@@ -51,9 +51,9 @@ class KDTreeConfig:
         no ray slips between triangles sharing an edge) or ``"moller-trumbore"``. Not a
         build parameter: trees are cached and shared across both.
     vector_spans : bool
-        The path tracer's ray queries on watertight trees test a node's triangles all at once
-        before one by one (same images; ``kdtrace._kdtree_traverse.span_blocked``). Not a build
-        parameter either.
+        Ray queries on watertight trees (the batch queries and the path tracer's) find a node's
+        triangles hit all at once before testing those one by one (same results;
+        ``kdtrace._kdtree_traverse.span_hits``). Not a build parameter either.
     regroup_min_bytes : int
         Batch ray queries (``KDTree.intersect``, ``KDTree.occluded``) on trees whose traversal data
         and triangle corners take at least this many bytes trace their rays grouped by origin cell
@@ -63,7 +63,7 @@ class KDTreeConfig:
 
     traversal_cost: float = 1.0
     intersection_cost: float = 5.0
-    min_leaf_size: int = 8
+    min_leaf_size: int = 16
     depth_base: float = 8.0
     depth_log_factor: float = 1.3
     axis_selection: str = "all"

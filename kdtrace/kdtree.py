@@ -70,9 +70,9 @@ class KDTree:
     triangle_test : {"watertight", "moller-trumbore"}
         Ray-triangle test of the queries (``KDTreeConfig.triangle_test``).
     vector_spans : bool
-        The path tracer's queries on this tree test a node's triangles all at once before one by
-        one (``KDTreeConfig.vector_spans``; watertight trees only). The batch queries
-        (:meth:`intersect`, :meth:`occluded`) test them one by one.
+        The queries on this tree (the batch queries :meth:`intersect` and :meth:`occluded`, and the
+        path tracer's) find a node's triangles hit all at once before testing those one by one
+        (``KDTreeConfig.vector_spans``; watertight trees only): the same results and counters.
     regroups : bool
         The batch queries trace a batch grouped by origin cell and direction octant unless told
         otherwise: the tree's traversal data and triangle corners take at least
@@ -117,7 +117,7 @@ class KDTree:
         spans of leaves and of local-branch interior nodes partition ``refs``): the span
         ``first .. first + count - 1`` holds coordinate ``c`` (9 per triangle, as in ``corners``)
         of its ``j``-th reference at ``9 first + c count + j``. So the vector span test
-        (:func:`kdtrace._kdtree_traverse.span_blocked`) reads a span as 9 runs side by side in
+        (:func:`kdtrace._kdtree_traverse.span_hits`) reads a span as 9 runs side by side in
         ``36 count`` contiguous bytes; one run per coordinate over all references had spread a
         span over 9 cache lines, and made the bunny's shadow rays slower, not faster.
         36 bytes a reference, made on first use, and :data:`kdtrace._kdtree_traverse.SPAN_LANES`
@@ -139,8 +139,9 @@ class KDTree:
     def __repr__(self) -> str:
         return f"KDTree(variant={self.variant!r}, nodes={self.stats['nodes']}, references={self.stats['triangle_references']})"
 
-    def _trace(self, origins, directions, tmin, tmax, any_hit, packets=False, regroup=None):
+    def _trace(self, origins, directions, tmin, tmax, any_hit, packets=False, regroup=None, vector_spans=None):
         origins, directions, tmin, tmax = validate_rays(origins, directions, tmin, tmax)
+        vector_spans = self.vector_spans if vector_spans is None else bool(vector_spans) and self.watertight
         n = len(origins)
         regroup = self.regroups and not packets if regroup is None else bool(regroup)
         if regroup and packets:
@@ -166,7 +167,8 @@ class KDTree:
                 self.watertight, packet_kernels.PACKET_SIZE, n_chunks, *outputs)
         else:
             traverse_kernels.trace_batch(
-                self.node_words, self.node_splits, self.refs, self.box, self.corners, origins, directions, tmin, tmax,
+                self.node_words, self.node_splits, self.refs, self.box, self.corners,
+                self.span_corners if vector_spans else self.corners.reshape(-1)[:0], origins, directions, tmin, tmax,
                 any_hit, self.watertight, n_chunks, *outputs)
         if order is not None:  # back to the caller's order
             outputs = tuple(_in_order(values, order) for values in outputs)
@@ -174,7 +176,7 @@ class KDTree:
         self.last_counters = TraceCounters(visited, tests)
         return out_t, out_tri, out_u, out_v
 
-    def intersect(self, origins, directions, tmin=0.0, tmax=np.inf, packets=False, regroup=None):
+    def intersect(self, origins, directions, tmin=0.0, tmax=np.inf, packets=False, regroup=None, vector_spans=None):
         """Closest hit of every ray ``o + t d`` with ``tmin < t < tmax``.
 
         Parameters
@@ -191,6 +193,10 @@ class KDTree:
             Trace the rays grouped by origin cell and direction octant
             (:mod:`kdtrace._ray_order`), results in the caller's order: the same results and
             counters. Default :attr:`regroups` (never with ``packets``).
+        vector_spans : bool, optional
+            Find a node's triangles hit all at once before testing them one by one
+            (:func:`kdtrace._kdtree_traverse.span_hits`; watertight trees, not with ``packets``):
+            the same results and counters. Default :attr:`vector_spans`; False is the oracle.
 
         Returns
         -------
@@ -198,9 +204,9 @@ class KDTree:
         tri : (N,) int32, index into ``scene.triangles``, -1 on a miss
         u, v : (N,) float64, barycentric weights of vertices 1 and 2
         """
-        return self._trace(origins, directions, tmin, tmax, False, packets, regroup)
+        return self._trace(origins, directions, tmin, tmax, False, packets, regroup, vector_spans)
 
-    def occluded(self, origins, directions, tmax, tmin=0.0, regroup=None):
+    def occluded(self, origins, directions, tmax, tmin=0.0, regroup=None, vector_spans=None):
         """True for rays that hit anything with ``tmin < t < tmax`` (shadow rays).
 
         Parameters
@@ -216,12 +222,14 @@ class KDTree:
         regroup : bool, optional
             Trace the rays grouped by origin cell and direction octant, as :meth:`intersect`
             does; default :attr:`regroups`.
+        vector_spans : bool, optional
+            As in :meth:`intersect`; default :attr:`vector_spans`.
 
         Returns
         -------
         (N,) bool
         """
-        t, _, _, _ = self._trace(origins, directions, tmin, tmax, True, regroup=regroup)
+        t, _, _, _ = self._trace(origins, directions, tmin, tmax, True, regroup=regroup, vector_spans=vector_spans)
         return np.isfinite(t)
 
 

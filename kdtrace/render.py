@@ -354,8 +354,8 @@ def render(
         the scene has at most ``[render] last_ray_max_emitters`` emitter triangles. False
         traces the last ray's closest hit, the oracle; the image is the same.
     vector_spans : bool, optional
-        Occlusion and closest-hit queries test a node's triangles all at once before one by one
-        (:func:`kdtrace._kdtree_traverse.span_blocked`; watertight trees only); default: the
+        Occlusion and closest-hit queries find a node's triangles hit all at once before testing
+        those one by one (:func:`kdtrace._kdtree_traverse.span_hits`; watertight trees only); default: the
         tree's (``[kdtree] vector_spans``). False tests them one by one, the oracle; the
         image is the same.
 

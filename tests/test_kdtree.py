@@ -10,7 +10,13 @@ from numba import njit
 
 from kdtrace._kdtree_build import LEAF
 from kdtrace._kdtree_layout import HAS_TRIANGLES, LINE_NODES
-from kdtrace._kdtree_traverse import SPAN_LANES, span_blocked, triangle_test_setup
+from kdtrace._kdtree_traverse import (
+    SPAN_LANES,
+    SPAN_MASK_BITS,
+    intersect_triangle_watertight,
+    span_hits,
+    triangle_test_setup,
+)
 from kdtrace.config import KDTreeConfig
 from kdtrace.kdtree import VARIANTS, build_kdtree
 from kdtrace.oracle import intersect_brute_force
@@ -107,8 +113,9 @@ def test_any_hit_walks_the_segment_from_its_end(variant):
     out = [np.empty(n), np.empty(n, np.int32), np.empty(n), np.empty(n), np.empty(n, np.int32), np.empty(n, np.int32)]
     for tmax, last_square in ((9.0, 8), (5.2, 5)):  # the segments end at x = 9.5 and 5.7
         for any_hit in (False, True):
-            kernels.trace_batch(tree.node_words, tree.node_splits, tree.refs, tree.box, tree.corners, origins,
-                                directions, np.zeros(n), np.full(n, tmax), any_hit, True, 4, *out)
+            kernels.trace_batch(tree.node_words, tree.node_splits, tree.refs, tree.box, tree.corners,
+                                tree.span_corners, origins, directions, np.zeros(n), np.full(n, tmax), any_hit, True, 4,
+                                *out)
             square = out[1] // 2 + 1  # triangles 2k and 2k+1 make square k + 1
             if not any_hit:
                 np.testing.assert_array_equal(square, 1)  # closest hit: the first square
@@ -370,21 +377,36 @@ def test_axis_parallel_rays_on_a_grid_hit_exactly(variant):
 
 
 @njit(error_model="numpy")
-def _span_blocked_along(span_corners, first, count, origin, direction, tmax):
-    """:func:`span_blocked` for one ray, with the ray's setup as :func:`trace_ray` makes it."""
+def _span_hits_along(span_corners, first, count, origin, direction, tmax):
+    """:func:`span_hits` for one ray, with the ray's setup as :func:`trace_ray` makes it."""
     okx, oky, okz, kx, ky, kz, sx, sy, sz = triangle_test_setup(True, origin[0], origin[1], origin[2], direction[0],
                                                                 direction[1], direction[2])
-    return span_blocked(span_corners, first, count, okx, oky, okz, kx, ky, kz, sx, sy, sz, 0.0, tmax)
+    return span_hits(span_corners, first, count, okx, oky, okz, kx, ky, kz, sx, sy, sz, 0.0, tmax)
 
 
-def test_span_test_answers_for_the_span_alone():
+@njit(error_model="numpy")
+def _hit_one_by_one(corners, origin, direction, tmax):
+    """Whether each triangle is hit in (0, tmax) by the scalar watertight test, as the queries test."""
+    okx, oky, okz, kx, ky, kz, sx, sy, sz = triangle_test_setup(True, origin[0], origin[1], origin[2], direction[0],
+                                                                direction[1], direction[2])
+    hit = np.zeros(corners.shape[0], np.bool_)
+    for tri in range(corners.shape[0]):
+        t, _, _ = intersect_triangle_watertight(tri, corners, okx, oky, okz, kx, ky, kz, sx, sy, sz, 0.0, tmax)
+        hit[tri] = t < np.inf
+    return hit
+
+
+def test_span_mask_is_the_one_by_one_answer_for_the_span_alone():
     """The vector span test reads whole passes of lanes past a span's end (into the next span,
-    or the padding): whatever lies there, its answer is the brute-force oracle's for the span's
-    own triangles. Random triangles and rays, so that the lanes past the end often hold a hit."""
+    or the padding): whatever lies there, its mask holds exactly the span's triangles the scalar
+    test finds hit (the last bit: any from there on), and it is non-zero exactly when the
+    brute-force oracle finds a hit. Random triangles and rays, so that the lanes past the end
+    often hold a hit; spans of up to 80 triangles, past the mask's 64 bits."""
     rng = np.random.default_rng(7)
     answers = []
-    for _ in range(3000):
-        count = int(rng.integers(1, 12))
+    last = SPAN_MASK_BITS - 1
+    for case in range(3000):
+        count = int(rng.integers(1, 12)) if case % 10 else int(rng.integers(SPAN_MASK_BITS - 8, 81))
         corners = rng.uniform(-1.0, 1.0, (count, 9)).astype(np.float32)
         after = rng.uniform(-1.0, 1.0, int(rng.integers(0, 30)) + SPAN_LANES).astype(np.float32)
         blocks = np.concatenate([corners.T.reshape(-1), after])
@@ -394,5 +416,9 @@ def test_span_test_answers_for_the_span_alone():
         _, hits, _, _ = intersect_brute_force(corners.reshape(-1, 3).astype(np.float64), np.arange(3 * count).reshape(-1, 3),
                                               origin[None], direction[None], tmax=10.0)
         answers.append(hits[0] >= 0)
-        assert _span_blocked_along(blocks, 0, count, origin, direction, 10.0) == (hits[0] >= 0)
+        mask = int(_span_hits_along(blocks, 0, count, origin, direction, 10.0))
+        one_by_one = _hit_one_by_one(corners, origin, direction, 10.0)
+        expected = sum(1 << k for k in range(min(count, last)) if one_by_one[k]) | (int(one_by_one[last:].any()) << last)
+        assert mask == expected
+        assert (mask != 0) == (hits[0] >= 0)
     assert 0.1 < np.mean(answers) < 0.9  # both answers were put to the test

@@ -1,5 +1,6 @@
 """Regrouped batch queries (``kdtrace._ray_order``): the keys against their definition, and the
-same answers and counters as the batch traced as given, on the stress scenes and every ray kind."""
+same answers and counters as the batch traced as given, on the stress scenes and every ray kind;
+likewise the vector span test against one-by-one tests."""
 
 from __future__ import annotations
 
@@ -77,8 +78,11 @@ def test_gathered_rays_are_the_rays_in_that_order():
           suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
 @given(case=stress_scenes(max_triangles=300), config=tree_configs, seed=st.integers(0, 2**16),
        ray_kind=st.sampled_from(RAY_KINDS), tmax_fraction=st.sampled_from([np.inf, 0.5]))
-def test_regrouped_queries_answer_exactly_as_the_batch_as_given(case, config, seed, ray_kind, tmax_fraction):
-    """Closest hits, occlusion answers and both counters, ray for ray, bit for bit."""
+@pytest.mark.parametrize("option", ["regroup", "vector_spans"])
+def test_fast_batch_queries_answer_exactly_as_the_oracle(option, case, config, seed, ray_kind, tmax_fraction):
+    """Regrouped rays against the batch as given, and a node's triangles found hit all at once
+    (``vector_spans``) against one by one: closest hits, occlusion answers and both counters, ray
+    for ray, bit for bit."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)  # zero-area triangles left out (expected here)
         trees = {variant: build_kdtree(case.scene, variant, config, cache=False) for variant in VARIANTS}
@@ -86,15 +90,18 @@ def test_regrouped_queries_answer_exactly_as_the_batch_as_given(case, config, se
     lo, hi = case.scene.bounds
     tmax = tmax_fraction * float(np.linalg.norm(np.subtract(hi, lo)) + 1.0)
     for tree in trees.values():
-        given_hits = tree.intersect(origins, directions, tmax=tmax, regroup=False)
+        given_hits = tree.intersect(origins, directions, tmax=tmax, **{option: False})
         given_counters = tree.last_counters
-        regrouped_hits = tree.intersect(origins, directions, tmax=tmax, regroup=True)
-        for ours, theirs in zip(regrouped_hits, given_hits, strict=True):
+        fast_hits = tree.intersect(origins, directions, tmax=tmax, **{option: True})
+        for ours, theirs in zip(fast_hits, given_hits, strict=True):
             np.testing.assert_array_equal(ours, theirs)
         np.testing.assert_array_equal(tree.last_counters.nodes_visited, given_counters.nodes_visited)
         np.testing.assert_array_equal(tree.last_counters.triangle_tests, given_counters.triangle_tests)
-        blocked = tree.occluded(origins, directions, tmax, regroup=False)
-        np.testing.assert_array_equal(tree.occluded(origins, directions, tmax, regroup=True), blocked)
+        blocked = tree.occluded(origins, directions, tmax, **{option: False})
+        blocked_counters = tree.last_counters
+        np.testing.assert_array_equal(tree.occluded(origins, directions, tmax, **{option: True}), blocked)
+        np.testing.assert_array_equal(tree.last_counters.nodes_visited, blocked_counters.nodes_visited)
+        np.testing.assert_array_equal(tree.last_counters.triangle_tests, blocked_counters.triangle_tests)
         assert blocked.any() or not np.isfinite(given_hits[0]).any()
 
 
