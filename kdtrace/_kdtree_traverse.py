@@ -14,6 +14,7 @@ import sys
 
 import numpy as np
 from numba import njit, prange
+from numba.cpython.unsafe.numbers import leading_zeros, trailing_zeros
 
 from kdtrace import _kdtree_build, _kdtree_layout, _stack
 from kdtrace._kdtree_build import LEAF
@@ -207,9 +208,11 @@ def span_hits(span_corners, first, count, okx, oky, okz, kx, ky, kz, sx, sy, sz,
     :func:`watertight_decision` for every reference of the span, with no early out and no
     branch per triangle, so the loop runs on vector registers. ``span_corners`` holds each
     span's corners as a block of 9 runs of ``count`` (:attr:`kdtrace.kdtree.KDTree.span_corners`).
-    A query then tests one by one only the references whose bit is set (and, for the last
-    bit, all from there on): those are the only ones the one-by-one test can find hit, because
-    the decision is the same, bit for bit.
+    A query then tests one by one only the references from the mask's first set bit to its last
+    (for the last bit: to the span's end): no other reference can be found hit one by one, because
+    the decision is the same, bit for bit, so the hit and the counters are the one-by-one walk's.
+    (Testing only the set bits, in a loop over the mask, gave the same max_depth-3 frames but made
+    the camera-ray-only ones 1.1-1.2x slower: LLVM laid out the path tracer's kernel differently.)
 
     The loop runs to ``count`` rounded up to a multiple of :data:`SPAN_LANES`, and the lanes
     past ``count`` (reading the next run's corners, or the array's zero padding at its end)
@@ -315,13 +318,18 @@ def trace_ray(
     With the watertight test and a non-empty ``span_corners`` (each node's span of references
     as a block, :attr:`kdtrace.kdtree.KDTree.span_corners`), a query first asks
     :func:`span_hits` which of a node's triangles are hit in (tmin, closest hit so far), all
-    of them at once, and tests one by one only those: the same hit, the same
-    counters, and a span without a hit (most of them on a shadow ray's way to a light, all but
+    of them at once, and tests one by one only from the first of those to the last: the same hit,
+    the same counters, and a span without a hit (most of them on a shadow ray's way to a light, all but
     the last on a closest-hit walk) costs no branch per triangle. Measured against one-by-one
     tests in separate processes (2026-12-05; 256x256, 8 spp, max_depth 3, 2 threads): frames
     1.08-1.09x faster with it for occlusion queries (car, cbox-original, cbox-sphere), and
     1.06x more on car and cbox-sphere with it for closest hits as well (cbox-original 1.01x,
-    Crytek Sponza 1.02x). Pass an empty array to test one by one.
+    Crytek Sponza 1.02x). With the mask, a span of 16 costs about what one of 8 did, so the trees
+    have leaves of 16 (``[kdtree] min_leaf_size``): frames against the commit before both
+    (separate processes, 3 rounds, 2026-12-05 evening) 1.07-1.08x faster at max_depth 3 on car,
+    the Cornell boxes and Crytek Sponza, 0.90-0.95x at max_depth 1 (camera packets, which test a
+    leaf's triangles lane by lane); Table 1's batch queries, which tested one by one, now use it
+    too. Pass an empty array to test one by one.
     """
     best_t = tmax
     best_tri = -1
@@ -353,21 +361,24 @@ def trace_ray(
         visited += 1
         word, axis, first, count = decode_node(nodes, node, spans)
         if count > 0:
-            may_hit = np.uint64(0)  # vector spans: the span's mask (span_hits)
             if vector_spans:
                 may_hit = span_hits(span_corners, first, count, okx, oky, okz, kx, ky, kz, sx, sy, sz, tmin, best_t)
-                tests += count  # what testing them one by one counts (less on an any-hit's return, below)
-            for k in range(first, first + count):
-                if vector_spans:
-                    # Test only the references the mask may find hit; stop when no bit is left.
-                    lane = min(np.uint64(k - first), np.uint64(SPAN_MASK_BITS - 1))
-                    if (may_hit >> lane) == 0:
-                        break
-                    if (may_hit >> lane) & np.uint64(1) == 0:
-                        continue
+                if may_hit == 0:
+                    tests += count  # what testing them one by one counts
+                    count = 0
                 else:
-                    tests += 1
+                    # One by one from the mask's first bit (an any-hit query's hit) to its last (the
+                    # closest hit lies between; the last bit of the mask: to the span's end).
+                    lead = np.int64(trailing_zeros(may_hit))
+                    end = np.int64(count)
+                    if may_hit >> np.uint64(SPAN_MASK_BITS - 1) == 0:
+                        end = np.int64(SPAN_MASK_BITS) - np.int64(leading_zeros(may_hit))
+                    tests += lead if any_hit else lead + count - end
+                    first += lead
+                    count = end - lead
+            for k in range(first, first + count):
                 tri = refs[np.uint64(k)]
+                tests += 1
                 t, u, v = intersect_tree_triangle(watertight, tri, corners, ox, oy, oz, dx, dy, dz, setup, tmin, best_t)
                 if t < best_t:
                     best_t = t
@@ -375,8 +386,6 @@ def trace_ray(
                     best_u = u
                     best_v = v
                     if any_hit:
-                        if vector_spans:
-                            tests -= first + count - 1 - k  # one by one stops here
                         return best_t, best_tri, best_u, best_v, visited, tests
         if axis != LEAF:
             left = np.uint64(word >> 3)
