@@ -81,8 +81,9 @@ class KDTree:
         nodes, leaves, empty_leaves, max_depth, triangle_references (leaf + interior),
         leaf_references, interior_references, sah_cost, tree_bytes (the build's arrays: 17 bytes
         a node and 4 a reference), traversal_bytes (what the queries read: the 8-byte node
-        array with its cold half, padding slots included, plus the references),
-        build_seconds, zero_area_triangles, cache_hit.
+        array with its cold half, padding slots included, plus the references), span_bytes (the
+        references' corners again, in node order, that the vector test reads: :attr:`span_corners`,
+        0 without :attr:`vector_spans`), build_seconds, zero_area_triangles, cache_hit.
     last_counters : TraceCounters or None
         Work counters of the most recent query.
     """
@@ -106,7 +107,9 @@ class KDTree:
         # The kernels' flat views of it: int32 words and the same words as float32 splits.
         self.node_words = self.packed_nodes.reshape(-1)
         self.node_splits = self.node_words.view(np.float32)
-        self.stats = {**stats, "traversal_bytes": int(self.packed_nodes.nbytes + self.refs.nbytes)}
+        span_bytes = 4 * (9 * len(self.refs) + traverse_kernels.SPAN_LANES) if self.vector_spans else 0
+        self.stats = {**stats, "traversal_bytes": int(self.packed_nodes.nbytes + self.refs.nbytes),
+                      "span_bytes": span_bytes}
         self.corners = np.ascontiguousarray(scene.vertices[scene.triangles].reshape(-1, 9))
         self.regroups = self.stats["traversal_bytes"] + self.corners.nbytes >= regroup_min_bytes
         self.last_counters: TraceCounters | None = None

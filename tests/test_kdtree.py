@@ -235,6 +235,7 @@ def test_statistics_are_consistent(variant, big_and_small_triangles):
     slots = len(tree.packed_nodes) // 2
     assert slots >= stats["nodes"] and slots % 8 == 0
     assert stats["traversal_bytes"] == 16 * slots + 4 * len(tree.refs)
+    assert stats["span_bytes"] == tree.span_corners.nbytes  # the vector test's copy of the corners
     assert 0 < stats["max_depth"] <= 8 + 1.3 * np.log2(len(big_and_small_triangles.triangles)) + 1
     # Every non-degenerate triangle is referenced somewhere.
     assert set(tree.refs.tolist()) == set(range(len(big_and_small_triangles.triangles)))
