@@ -211,8 +211,9 @@ def span_hits(span_corners, first, count, okx, oky, okz, kx, ky, kz, sx, sy, sz,
     A query then tests one by one only the references from the mask's first set bit to its last
     (for the last bit: to the span's end): no other reference can be found hit one by one, because
     the decision is the same, bit for bit, so the hit and the counters are the one-by-one walk's.
-    (Testing only the set bits, in a loop over the mask, gave the same max_depth-3 frames but made
-    the camera-ray-only ones 1.1-1.2x slower: LLVM laid out the path tracer's kernel differently.)
+    (Testing only the set bits, in a loop over the mask, rendered max_depth-3 frames 1.03x slower
+    than this and the camera-ray-only ones 1.15-1.27x slower: LLVM laid out the path tracer's kernel
+    differently, though the camera packets' code is the same.)
 
     The loop runs to ``count`` rounded up to a multiple of :data:`SPAN_LANES`, and the lanes
     past ``count`` (reading the next run's corners, or the array's zero padding at its end)
