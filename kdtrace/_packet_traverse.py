@@ -230,31 +230,12 @@ def _test_triangle_uniform(tri, corners, kx, ky, kz, n, active, lanes3, lanes, l
     if not any_lane:
         return
     for r in range(n):
-        on = (active >> r) & 1
-        az = caz - okz[r]
-        bz = cbz - okz[r]
-        cz = ccz - okz[r]
-        ax = (cax - okx[r]) - shx[r] * az
-        ay = (cay - oky[r]) - shy[r] * az
-        bx = (cbx - okx[r]) - shx[r] * bz
-        by = (cby - oky[r]) - shy[r] * bz
-        cx = (ccx - okx[r]) - shx[r] * cz
-        cy = (ccy - oky[r]) - shy[r] * cz
-        w0 = cx * by - cy * bx
-        w1 = ax * cy - ay * cx
-        w2 = bx * ay - by * ax
-        inside = not (((w0 < 0.0) | (w1 < 0.0) | (w2 < 0.0)) & ((w0 > 0.0) | (w1 > 0.0) | (w2 > 0.0)))
-        det = w0 + w1 + w2
-        t_scaled = (w0 * az + w1 * bz + w2 * cz) * shz[r]
-        negative = det < 0.0
-        det = -det if negative else det
-        t_scaled = -t_scaled if negative else t_scaled
-        w1 = -w1 if negative else w1
-        w2 = -w2 if negative else w2
         b = best[r]
+        _, t_scaled, det, w1, w2 = watertight_decision(cax, cay, caz, cbx, cby, cbz, ccx, ccy, ccz, okx[r], oky[r],
+                                                       okz[r], shx[r], shy[r], shz[r], 0.0, b)
         inv = 1.0 / det
         t = t_scaled * inv
-        good = (on == 1) & inside & (det != 0.0) & (t_scaled > 0.0 * det) & (t_scaled < b * det) & (t < b)
+        good = hit[r] & (t < b)  # hit[r]: this lane's decision of the first loop, on the same values
         hit[r] = good
         best[r] = t if good else b
         u_out[r] = w1 * inv if good else u_out[r]

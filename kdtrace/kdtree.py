@@ -107,12 +107,16 @@ class KDTree:
         # The kernels' flat views of it: int32 words and the same words as float32 splits.
         self.node_words = self.packed_nodes.reshape(-1)
         self.node_splits = self.node_words.view(np.float32)
-        span_bytes = 4 * (9 * len(self.refs) + traverse_kernels.SPAN_LANES) if self.vector_spans else 0
+        span_bytes = 4 * self._span_length() if self.vector_spans else 0  # float32 span_corners
         self.stats = {**stats, "traversal_bytes": int(self.packed_nodes.nbytes + self.refs.nbytes),
                       "span_bytes": span_bytes}
         self.corners = np.ascontiguousarray(scene.vertices[scene.triangles].reshape(-1, 9))
         self.regroups = self.stats["traversal_bytes"] + self.corners.nbytes >= regroup_min_bytes
         self.last_counters: TraceCounters | None = None
+
+    def _span_length(self) -> int:
+        """Length of :attr:`span_corners`: 9 values a reference and the padding of one vector pass."""
+        return 9 * len(self.refs) + traverse_kernels.SPAN_LANES
 
     @functools.cached_property
     def span_corners(self) -> np.ndarray:
@@ -134,7 +138,7 @@ class KDTree:
         position = np.arange(len(self.refs)) - span_first
         if len(self.refs) and (position.min() < 0 or (position >= span_count).any()):
             raise AssertionError("the nodes' spans do not partition the references in order")
-        out = np.zeros(9 * len(self.refs) + traverse_kernels.SPAN_LANES, np.float32)
+        out = np.zeros(self._span_length(), np.float32)
         for c in range(9):
             out[9 * span_first + c * span_count + position] = self.corners[self.refs, c]
         return out
@@ -171,8 +175,8 @@ class KDTree:
         else:
             traverse_kernels.trace_batch(
                 self.node_words, self.node_splits, self.refs, self.box, self.corners,
-                self.span_corners if vector_spans else self.corners.reshape(-1)[:0], origins, directions, tmin, tmax,
-                any_hit, self.watertight, n_chunks, *outputs)
+                self.span_corners if vector_spans else traverse_kernels.no_spans(self.corners), origins, directions,
+                tmin, tmax, any_hit, self.watertight, n_chunks, *outputs)
         if order is not None:  # back to the caller's order
             outputs = tuple(_in_order(values, order) for values in outputs)
             out_t, out_tri, out_u, out_v, visited, tests = outputs

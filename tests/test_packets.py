@@ -57,7 +57,8 @@ def trace_both(tree, origins, directions, tmax=np.inf, packet_size=packet_kernel
     chunks = max(1, min(n, 4))
     scalar = _outputs(n)
     scalar_kernels.trace_batch(tree.node_words, tree.node_splits, tree.refs, tree.box, tree.corners,
-                               tree.corners.reshape(-1)[:0], origins, directions, tmin, tmax, False, tree.watertight, chunks, *scalar)
+                               scalar_kernels.no_spans(tree.corners), origins, directions, tmin, tmax, False,
+                               tree.watertight, chunks, *scalar)
     packet = _outputs(n)
     packet_kernels.trace_batch_packets(tree.node_words, tree.node_splits, tree.refs, tree.box, tree.corners,
                                        origins, directions, tmax, tree.watertight, packet_size, chunks, *packet)
@@ -119,7 +120,8 @@ def occluded_both(tree, origins, directions, tmax):
     n = len(origins)
     scalar = _outputs(n)
     scalar_kernels.trace_batch(tree.node_words, tree.node_splits, tree.refs, tree.box, tree.corners,
-                               tree.corners.reshape(-1)[:0], origins, directions, tmin, tmax, True, tree.watertight, 4, *scalar)
+                               scalar_kernels.no_spans(tree.corners), origins, directions, tmin, tmax, True,
+                               tree.watertight, 4, *scalar)
     packet = np.empty(n, np.bool_)
     packet_kernels.occluded_batch_packets(tree.node_words, tree.node_splits, tree.refs, tree.box, tree.corners,
                                           origins, directions, tmax, 4, packet)
