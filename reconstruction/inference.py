@@ -220,7 +220,8 @@ def make_runner(model: nn.Module, option: str) -> Callable[[torch.Tensor], torch
     option : str
         ``"fp32"``: plain float32. ``"channels_last"``: NHWC memory format (oneDNN's
         native layout). ``"bf16"``: ``torch.autocast("cpu", torch.bfloat16)``, output cast
-        back to float32 (only on CPUs with AVX512-BF16 or AMX). ``"channels_last_bf16"``:
+        back to float32 (only on CPUs with AVX512-BF16 or AMX); a model whose
+        ``casts_to_weight_dtype`` is true gets a bfloat16 copy of its weights instead. ``"channels_last_bf16"``:
         both. ``"jit_freeze"``:
         ``torch.jit.trace`` + ``torch.jit.freeze`` (folded weights, fused conv+ReLU),
         traced once per input shape.
@@ -237,8 +238,15 @@ def make_runner(model: nn.Module, option: str) -> Callable[[torch.Tensor], torch
     channels_last = option.startswith("channels_last")
     if bf16 and not _bf16_supported():
         raise RuntimeError("this CPU has neither AVX512-BF16 nor AMX; bfloat16 autocast would be emulated")
+    # A net that convolves in its weights' dtype gets bf16 weights once; autocast would cast
+    # every activation on every call (1024x1024 superresolution: 0.62 s against 0.36 s).
+    bf16_weights = bf16 and getattr(model, "casts_to_weight_dtype", False)
+    if channels_last or bf16_weights:
+        model = copy.deepcopy(model)
+    if bf16_weights:
+        model = model.to(torch.bfloat16)
     if channels_last:
-        model = copy.deepcopy(model).to(memory_format=torch.channels_last)
+        model = model.to(memory_format=torch.channels_last)
     traced: dict[tuple[int, ...], torch.jit.ScriptModule] = {}
 
     def forward(x: torch.Tensor) -> torch.Tensor:
@@ -252,7 +260,7 @@ def make_runner(model: nn.Module, option: str) -> Callable[[torch.Tensor], torch
         return traced[tuple(x.shape)](x)
 
     def run(x: torch.Tensor) -> torch.Tensor:
-        with torch.inference_mode(), torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
+        with torch.inference_mode(), torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16 and not bf16_weights):
             if channels_last:
                 x = x.contiguous(memory_format=torch.channels_last)
             return forward(x).float().contiguous()

@@ -225,6 +225,11 @@ class Superresolution(nn.Module):
     plus the predicted correction (same size as the input).
     """
 
+    #: bf16 inference converts this net's weights once instead of autocasting every call
+    #: (:func:`reconstruction.inference.make_runner`): :meth:`forward` convolves in the weights'
+    #: dtype and adds the correction to its input in the input's own precision, as autocast does.
+    casts_to_weight_dtype = True
+
     def __init__(self) -> None:
         super().__init__()
         self.layers = nn.ModuleList(
@@ -256,10 +261,50 @@ class Superresolution(nn.Module):
             Shape (N, 1, H, W): refined luma (not clamped; :func:`superresolve` clamps).
         """
         _check_batch(y, 1, "Superresolution")
-        x = y
+        # Without gradients the border strips are convolved apart (exact, and cheaper than a
+        # padded copy of every activation); training keeps the plain padded convolution.
+        convolve = replicate_padded_conv if not torch.is_grad_enabled() else lambda x, conv: conv(x)
+        x = y.to(self.layers[0].weight.dtype)
         for layer in self.layers[:-1]:
-            x = F.relu(layer(x))
-        return y + self.layers[-1](x)
+            x = F.relu(convolve(x, layer), inplace=True)
+        return y + convolve(x, self.layers[-1]).to(y.dtype)
+
+
+def replicate_padded_conv(x: torch.Tensor, conv: nn.Conv2d) -> torch.Tensor:
+    """``conv(x)`` for a stride-1 'same' convolution with replicate padding, without padding ``x``.
+
+    The convolution runs with zero padding, which oneDNN applies on the fly, and the strips
+    within the kernel radius of the border, the only outputs on which zero and replicate
+    padding differ, are computed again from replicate-padded slices of ``x``. A padded copy
+    of each 32-channel activation cost 52 ms of a 1024x1024 bf16 frame (2 threads, EPYC).
+
+    Parameters
+    ----------
+    x : torch.Tensor
+        Shape (N, C, H, W).
+    conv : torch.nn.Conv2d
+        Odd square kernel, stride 1, dilation 1, ``padding=k // 2``, ``padding_mode="replicate"``.
+
+    Returns
+    -------
+    torch.Tensor
+        Equal to ``conv(x)`` (same arithmetic per output pixel).
+    """
+    radius = conv.kernel_size[0] // 2
+    height, width = x.shape[-2:]
+    if min(height, width) <= 2 * radius:
+        return conv(x)
+    out = F.conv2d(x, conv.weight, conv.bias, padding=radius)
+
+    def strip(part: torch.Tensor, left: int, right: int, top: int, bottom: int) -> torch.Tensor:
+        return F.conv2d(F.pad(part, (left, right, top, bottom), mode="replicate"), conv.weight, conv.bias)
+
+    r, band = radius, 2 * radius
+    out[..., :r, :] = strip(x[..., :band, :], r, r, r, 0)
+    out[..., height - r :, :] = strip(x[..., height - band :, :], r, r, 0, r)
+    out[..., :, :r] = strip(x[..., :, :band], r, 0, r, r)
+    out[..., :, width - r :] = strip(x[..., :, width - band :], 0, r, r, r)
+    return out
 
 
 # Full-range BT.601 (JFIF) for values in [0, 1]: Y in [0, 1], Cb and Cr centred on 0.5.

@@ -35,6 +35,7 @@ from reconstruction.models import (
     Superresolution,
     count_parameters,
     remodulate,
+    replicate_padded_conv,
     rgb_from_ycbcr,
     superresolve,
     ycbcr_from_rgb,
@@ -336,6 +337,52 @@ def test_fast_inference_decision_respects_the_psnr_limit(denoiser):
     assert strict.chosen == "fp32"
     with pytest.raises(ValueError, match="unknown option"):
         make_runner(denoiser, "fp8")
+
+
+@pytest.mark.parametrize("kernel", [3, 5, 9])
+@pytest.mark.parametrize("size", [(1, 1), (8, 8), (9, 40), (37, 23), (64, 64)])
+def test_replicate_padded_conv_is_the_padded_convolution(kernel, size):
+    """Border strips convolved apart: the same outputs as padding the whole input, small frames included."""
+    torch.manual_seed(kernel)
+    conv = torch.nn.Conv2d(4, 3, kernel, padding=kernel // 2, padding_mode="replicate")
+    x = torch.rand(2, 4, *size) * 4 - 2  # a border unlike its inside: zero padding would differ there
+    with torch.inference_mode():
+        expected, got = conv(x), replicate_padded_conv(x, conv)
+    assert got.shape == expected.shape == (2, 3, *size)
+    torch.testing.assert_close(got, expected, rtol=0, atol=1e-5)
+    zero_padded = torch.nn.functional.conv2d(x, conv.weight, conv.bias, padding=kernel // 2)
+    if min(size) > 1:
+        assert (zero_padded - expected).abs().max() > 1e-3  # the strips were needed
+
+
+def test_superresolution_without_gradients_equals_training_forward(sr_net):
+    y = torch.rand(1, 1, 45, 38)
+    with torch.no_grad():
+        inference = sr_net(y)
+    with torch.enable_grad():
+        training = sr_net(y)
+    torch.testing.assert_close(inference, training.detach(), rtol=0, atol=1e-5)
+
+
+@pytest.mark.skipif(not (torch.cpu._is_avx512_bf16_supported() or torch.cpu._is_amx_tile_supported()),
+                    reason="bf16 runners need AVX512-BF16 or AMX")
+@pytest.mark.parametrize("option", ["bf16", "channels_last_bf16"])
+def test_bf16_superresolution_runner_converts_a_copy_and_keeps_the_residual_in_fp32(sr_net, option):
+    """bf16 weights once instead of autocast per call: the autocast result, and the caller's net untouched."""
+    y = torch.rand(1, 1, 70, 90)
+    run = make_runner(sr_net, option)
+    got = run(y)
+    assert all(p.dtype == torch.float32 for p in sr_net.parameters())
+    with torch.inference_mode(), torch.autocast("cpu", dtype=torch.bfloat16):
+        x = y
+        for layer in sr_net.layers[:-1]:
+            x = torch.relu(layer(x))
+        autocast = y + sr_net.layers[-1](x).float()
+    assert got.dtype == torch.float32
+    # One bf16 rounding of the correction apart at most; the input itself is carried in fp32.
+    correction = (autocast - y).abs().max()
+    assert (got - autocast).abs().max() <= 2 ** -7 * correction + 1e-6
+    assert (got - y).abs().max() > 0.01 * correction  # the net acted
 
 
 def test_superresolution_arithmetic_and_its_floor_on_this_machine(sr_net):
