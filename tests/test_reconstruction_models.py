@@ -33,6 +33,7 @@ from reconstruction.models import (
     POOLING_MULTIPLE,
     Denoiser,
     Superresolution,
+    bicubic_upsample,
     count_parameters,
     remodulate,
     replicate_padded_conv,
@@ -172,6 +173,18 @@ def test_superresolve_doubles_size_and_keeps_chroma(sr_net):
         superresolve(sr_net, low[:, :, :2])
     with pytest.raises(ValueError, match="NaN"):
         superresolve(sr_net, np.full((4, 4, 3), np.nan))
+
+
+def test_superresolve_is_the_ycbcr_round_trip_with_the_refined_luma(sr_net):
+    """Bicubic RGB plus the change of Y equals replacing Y in YCbCr and converting back."""
+    low = np.random.default_rng(5).random((21, 17, 3)).astype(np.float32)
+    with torch.inference_mode():
+        ycbcr = ycbcr_from_rgb(bicubic_upsample(torch.from_numpy(low).permute(2, 0, 1)[None]).clamp(0.0, 1.0),
+                               channel_axis=-3)
+        y = sr_net(ycbcr[:, :1])
+        round_trip = rgb_from_ycbcr(torch.cat([y, ycbcr[:, 1:]], dim=1), channel_axis=-3).clamp(0.0, 1.0)
+    np.testing.assert_allclose(superresolve(sr_net, low), round_trip[0].permute(1, 2, 0).numpy(), rtol=0, atol=2e-6)
+    assert float((y - ycbcr[:, :1]).abs().max()) > 1e-3  # a net that acts
 
 
 @pytest.mark.parametrize("sigma", [1.4, 1.0])
