@@ -25,6 +25,7 @@ from reconstruction.loss import (
     MSE_WEIGHT,
     EdgeAwareLoss,
     LaplacianOfGaussian,
+    log_kernel,
     normalise_edges,
 )
 from reconstruction.models import (
@@ -197,6 +198,30 @@ def test_log_matches_scipy(sigma):
         expected = gaussian_laplace(image[channel], sigma, mode="nearest")
         np.testing.assert_allclose(ours[channel], expected, rtol=0, atol=1e-12)
         np.testing.assert_allclose(single[channel], expected, rtol=0, atol=1e-6)
+
+
+@pytest.mark.parametrize("dtype, tolerance", [(torch.float64, 1e-12), (torch.float32, 2e-6)])
+@pytest.mark.parametrize("size", [(29, 41), (4, 3), (128, 128)])
+def test_log_as_matrix_products_is_the_direct_convolution_and_so_is_its_gradient(dtype, tolerance, size):
+    """The slow reference: one 2-D convolution with :func:`log_kernel` on the replicate-padded image."""
+    kernel = torch.from_numpy(log_kernel(DENOISER_SIGMA))[None, None].to(dtype)
+    radius = kernel.shape[-1] // 2
+
+    def direct(x):
+        n, c, h, w = x.shape
+        padded = torch.nn.functional.pad(x.reshape(n * c, 1, h, w), (radius,) * 4, mode="replicate")
+        return torch.nn.functional.conv2d(padded, kernel).reshape(n, c, h, w)
+
+    generator = torch.Generator().manual_seed(size[0])
+    x = torch.rand(3, 2, *size, dtype=dtype, generator=generator, requires_grad=True)
+    weights = torch.rand(3, 2, *size, dtype=dtype, generator=generator)
+    log = LaplacianOfGaussian(DENOISER_SIGMA)
+    ours, reference = log(x), direct(x)
+    torch.testing.assert_close(ours, reference, rtol=0, atol=tolerance)
+    (ours_gradient,) = torch.autograd.grad((ours * weights).sum(), x)
+    (reference_gradient,) = torch.autograd.grad((reference * weights).sum(), x)
+    torch.testing.assert_close(ours_gradient, reference_gradient, rtol=0, atol=tolerance * 10)
+    assert float(reference.detach().abs().max()) > 0.1  # a response to compare
 
 
 def test_edge_maps_are_normalised_and_safe_on_constant_images():
