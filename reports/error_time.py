@@ -764,8 +764,9 @@ def scene_rows(kind: str, version: int, measure_scene: Callable[..., dict], conf
     """Per-scene rows of a report over the profile's reconstruction scenes, reused when their key matches.
 
     A row is cached in ``out_dir/rows/KIND/SCENE.json`` under a content key of the scene,
-    ``version``, :data:`TIMING_REPEATS`, the report and reconstruction profiles and the
-    KD-tree and render settings. A reused row is announced with the date it was
+    ``version``, :data:`TIMING_REPEATS`, the report and reconstruction profiles, the
+    KD-tree and render settings, and the source of the renderer and (with ``networks``) of the
+    networks (:func:`reconstruction.train.networks_fingerprint`). A reused row is announced with the date it was
     measured; each new row is written atomically as soon as it is measured, so an
     interrupted run resumes at the next unfinished scene. The networks
     (:class:`Reconstruction`) are trained or loaded only when some row must be measured.
@@ -793,6 +794,7 @@ def scene_rows(kind: str, version: int, measure_scene: Callable[..., dict], conf
         One row per scene, in the profile's order.
     """
     from kdtrace.render import renderer_fingerprint  # imported when measuring, as render is
+    from reconstruction.train import networks_fingerprint
 
     profile = config.profile(profile_name)
     recon = config.reconstruction.profile(profile.reconstruction_profile)
@@ -804,7 +806,8 @@ def scene_rows(kind: str, version: int, measure_scene: Callable[..., dict], conf
     bar = tqdm(names, unit="scene", desc=f"{kind} ({profile_name})", disable=not progress)
     for name in bar:
         path = out_dir / "rows" / kind / f"{name}.json"
-        key = content_key(f"{kind}-row", version, renderer_fingerprint(), name, TIMING_REPEATS, settings)
+        key = content_key(f"{kind}-row", version, renderer_fingerprint(), name, TIMING_REPEATS, settings,
+                          networks_fingerprint() if networks else None)
         if not fresh and path.exists():
             saved = json.loads(path.read_text())
             if saved.get("key") == key:
