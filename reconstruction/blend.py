@@ -36,15 +36,18 @@ A weight fitted on a few validation views can still be too large for a frame tha
 different (the quick Crytek Sponza sweep frame lost 0.46 dB to its input at 64 spp with
 the validated weight). So, at spp >= 2, the frame is rendered as two halves of its samples
 (:func:`combine_halves` gives the frame back) and each half, denoised, is blended against
-the *other* half as a noisy but independent target; :func:`cross_validated_weight` finds
-the weight that minimises that clipped squared error, the metric of our PSNR. No reference
-is involved. For a denoised error independent of the input's noise, the half's optimum
-``w_h = 2 s / (2 s + e)`` (input variance ``s`` at the frame's spp, denoised error ``e``)
-gives the frame's as ``w_h / (2 - w_h)`` (:func:`frame_weight_cap`); where the denoiser
-also improves with more samples this is an under-estimate, so as a cap it only moves the
-blend towards the input. The weight used is ``min(w(spp), cap)``: the smaller of two
-independent estimates, the same caution as the bootstrap bound. The cap costs two more
-denoiser passes and the search (timed in the sweep).
+the *other* half as a noisy but independent target, in the clipped squared error of our
+PSNR. No reference is involved. For a denoised error independent of the input's noise, the
+half's optimum ``w_h = 2 s / (2 s + e)`` (input variance ``s`` at the frame's spp, denoised
+error ``e``) gives the frame's as ``w_h / (2 - w_h)`` (:func:`frame_weight_cap`); where the
+denoiser also improves with more samples this is an under-estimate, so as a cap it only
+moves the blend towards the input. A single frame's estimate is noisy, and an over-estimate
+is what loses to the input (the quick car sweep frame at 32 spp, 2026-12-05: cap 0.18 where
+the frame's optimum was 0.08, 0.07 dB below the input), so the cap is the same
+:data:`BOUND_QUANTILE` lower bound as the validated weight: ``w_h`` is the weight on a grid of
+:data:`CAP_GRID` values minimising the error of :data:`BOOTSTRAP_SAMPLES` resamplings of the
+frame's :data:`BLOCK` x :data:`BLOCK` blocks. The weight used is ``min(w(spp), cap)``. The
+cap costs two more denoiser passes and the error curves (timed in the sweep).
 """
 
 from __future__ import annotations
@@ -62,7 +65,7 @@ from torch import nn
 from tqdm import tqdm
 
 from kdtrace.cache import atomic_write_bytes, cache_root, content_key
-from reconstruction._blend_kernels import clipped_blend_error
+from reconstruction._blend_kernels import clipped_blend_block_errors
 
 #: Bump when the fit changes: cached weights become stale.
 BLEND_VERSION = 1
@@ -72,9 +75,8 @@ BLOCK = 8
 BOOTSTRAP_SAMPLES = 400
 #: The weight used is this quantile of the bootstrap distribution of w* (a one-sided 90% lower bound).
 BOUND_QUANTILE = 0.1
-#: Golden-section steps of :func:`cross_validated_weight`: the bracket shrinks to 0.618^n of [0, 1].
-SEARCH_STEPS = 24
-_GOLDEN = (math.sqrt(5.0) - 1.0) / 2.0
+#: Blend weights at which :func:`frame_weight_cap` evaluates the halves' error (steps of 0.005).
+CAP_GRID = np.linspace(0.0, 1.0, 201)
 
 
 @dataclass(frozen=True)
@@ -161,47 +163,35 @@ def optimal_weight(noisy: Sequence[np.ndarray], denoised: Sequence[np.ndarray], 
     return float(np.clip(np.quantile(resampled, quantile), 0.0, 1.0))
 
 
-def cross_validated_weight(noisy: np.ndarray, denoised: np.ndarray, target: np.ndarray) -> float:
-    """The ``w`` in [0, 1] minimising ``sum((clip(noisy + w (denoised - noisy)) - clip(target))^2)``.
+def block_error_curves(noisy: np.ndarray, denoised: np.ndarray, target: np.ndarray,
+                       weights: np.ndarray = CAP_GRID) -> np.ndarray:
+    """Per :data:`BLOCK`-pixel block, ``sum((clip(noisy + w (denoised - noisy)) - clip(target))^2)`` at each ``w``.
 
-    Clipping to [0, 1] is our PSNR's. Each pixel's term falls and then rises in ``w``, and
-    in practice the sum has one minimum, found by :data:`SEARCH_STEPS` golden-section steps.
-    ``target`` is an independent noisy estimate (another half of the frame's samples): its
-    noise adds the same amount at every ``w`` in the unclipped case.
+    Clipping to [0, 1] is our PSNR's. ``target`` is an independent noisy estimate (the other
+    half of the frame's samples): its noise adds the same amount at every ``w`` in the
+    unclipped case, so the minimising ``w`` is unbiased.
 
     Parameters
     ----------
     noisy, denoised, target : (H, W, 3) arrays
         Linear radiance.
+    weights : 1-D array
+        The blend weights (default :data:`CAP_GRID`).
 
     Returns
     -------
-    float
+    numpy.ndarray
+        Shape (len(weights), blocks), float64; blocks in :func:`_block_sums` order.
     """
     noisy, denoised, target = (np.asarray(x, np.float64) for x in (noisy, denoised, target))
-    if not noisy.shape == denoised.shape == target.shape:
-        raise ValueError(f"shapes differ: noisy {noisy.shape}, denoised {denoised.shape}, target {target.shape}")
-    # flat contiguous float64 for the kernel (ravel copies only what is not contiguous)
-    change, goal, noisy = (denoised - noisy).ravel(), np.clip(target, 0.0, 1.0).ravel(), noisy.ravel()
-
-    def error(w: float) -> float:
-        return clipped_blend_error(noisy, change, goal, w)
-
-    lo, hi = 0.0, 1.0
-    a, b = hi - _GOLDEN * (hi - lo), lo + _GOLDEN * (hi - lo)
-    error_a, error_b = error(a), error(b)
-    for _ in range(SEARCH_STEPS):
-        if error_a <= error_b:
-            hi, b, error_b = b, a, error_a
-            a = hi - _GOLDEN * (hi - lo)
-            error_a = error(a)
-        else:
-            lo, a, error_a = a, b, error_b
-            b = lo + _GOLDEN * (hi - lo)
-            error_b = error(b)
-    middle = 0.5 * (lo + hi)
-    # The ends are candidates too (the minimum is often at 0 or 1, where the bracket only approaches it).
-    return min((0.0, middle, 1.0), key=error)
+    if not noisy.shape == denoised.shape == target.shape or noisy.ndim != 3:
+        raise ValueError(f"shapes differ or are not (H, W, C): noisy {noisy.shape}, denoised {denoised.shape}, "
+                         f"target {target.shape}")
+    weights = np.asarray(weights, np.float64)
+    if not np.all((weights >= 0.0) & (weights <= 1.0)):
+        raise ValueError("blend weights must lie in [0, 1]")
+    return clipped_blend_block_errors(np.ascontiguousarray(noisy), np.ascontiguousarray(denoised - noisy),
+                                      np.ascontiguousarray(np.clip(target, 0.0, 1.0)), BLOCK, weights)
 
 
 def combine_halves(first, second) -> tuple[np.ndarray, np.ndarray]:
@@ -221,12 +211,14 @@ def combine_halves(first, second) -> tuple[np.ndarray, np.ndarray]:
     return rgb.astype(np.float32), albedo.astype(np.float32)
 
 
-def frame_weight_cap(denoise: Callable[[np.ndarray, np.ndarray], np.ndarray], first, second) -> float:
+def frame_weight_cap(denoise: Callable[[np.ndarray, np.ndarray], np.ndarray], first, second,
+                     quantile: float = BOUND_QUANTILE, seed: int = 0) -> float:
     """A frame's own bound on the blend weight, from two halves of its samples (see the module docstring).
 
-    Each half is denoised and blended against the other (:func:`cross_validated_weight`);
-    the mean of the two weights, ``w_h``, is that of a half's spp, and ``w_h / (2 - w_h)``
-    the frame's.
+    Each half is denoised and blended against the other (:func:`block_error_curves`); the
+    blocks of both pairings are resampled together :data:`BOOTSTRAP_SAMPLES` times, each
+    resampling's summed error is minimised over :data:`CAP_GRID`, and the ``quantile`` of those
+    minimisers, ``w_h``, is the half's weight; ``w_h / (2 - w_h)`` the frame's.
 
     Parameters
     ----------
@@ -234,6 +226,10 @@ def frame_weight_cap(denoise: Callable[[np.ndarray, np.ndarray], np.ndarray], fi
         ``denoise(rgb, albedo)`` -> denoised rgb, e.g. ``lambda c, a: inference.denoise(model, c, a)``.
     first, second : RenderResult
         Renders of two halves of the frame's samples, with albedo, equal spp.
+    quantile : float
+        Of the bootstrap distribution (default :data:`BOUND_QUANTILE`, a lower bound; 0.5 its median).
+    seed : int
+        Seed of the bootstrap.
 
     Returns
     -------
@@ -242,9 +238,13 @@ def frame_weight_cap(denoise: Callable[[np.ndarray, np.ndarray], np.ndarray], fi
     """
     if first.stats["spp"] != second.stats["spp"]:
         raise ValueError(f"the halves differ in spp: {first.stats['spp']} and {second.stats['spp']}")
-    weights = [cross_validated_weight(a.rgb, denoise(a.rgb, a.albedo), b.rgb)
-               for a, b in ((first, second), (second, first))]
-    half = 0.5 * (weights[0] + weights[1])
+    curves = sum(block_error_curves(a.rgb, denoise(a.rgb, a.albedo), b.rgb) for a, b in ((first, second), (second, first)))
+    if not np.all(np.isfinite(curves)):
+        raise ValueError("the halves or their denoised images are not finite")
+    blocks = curves.shape[1]
+    picks = np.random.default_rng(seed).integers(0, blocks, size=(BOOTSTRAP_SAMPLES, blocks))
+    counts = np.stack([np.bincount(row, minlength=blocks) for row in picks]).astype(np.float64)
+    half = float(np.quantile(CAP_GRID[np.argmin(counts @ curves.T, axis=1)], quantile))
     return half / (2.0 - half)
 
 

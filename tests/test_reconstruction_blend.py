@@ -88,17 +88,23 @@ def _halves(seed: int, noise: float, error: float, size: int = 96):
     return truth, halves, denoise
 
 
-def test_cross_validated_weight_is_the_clipped_least_squares_blend():
+def test_block_error_curves_are_the_clipped_squared_error_of_each_block():
     rng = np.random.default_rng(7)
-    truth = rng.uniform(0.0, 1.2, (48, 48, 3))  # some pixels above 1: clipped by the metric
+    truth = rng.uniform(0.0, 1.2, (20, 13, 3))  # some pixels above 1: clipped by the metric; edge blocks smaller
     noisy, denoised = truth + 0.2 * rng.standard_normal(truth.shape), truth + 0.1 * np.sin(truth * 9.0)
-    grid = np.linspace(0, 1, 2001)
-    errors = [np.sum((np.clip(noisy + w * (denoised - noisy), 0, 1) - np.clip(truth, 0, 1)) ** 2) for w in grid]
-    assert blend.cross_validated_weight(noisy, denoised, truth) == pytest.approx(grid[int(np.argmin(errors))], abs=1e-3)
-    assert blend.cross_validated_weight(noisy, truth, truth) == 1.0  # a perfect denoiser
-    assert blend.cross_validated_weight(truth, noisy, truth) == 0.0  # a clean input
+    weights = np.array([0.0, 0.25, 0.618, 1.0])
+    curves = blend.block_error_curves(noisy, denoised, truth, weights)
+    assert curves.shape == (4, 3 * 2)  # blocks of 8: 3 rows x 2 columns
+    for k, w in enumerate(weights):
+        error = (np.clip(noisy + w * (denoised - noisy), 0, 1) - np.clip(truth, 0, 1)) ** 2
+        for b, (row, column) in enumerate(np.ndindex(3, 2)):
+            expected = error[8 * row : 8 * row + 8, 8 * column : 8 * column + 8].sum()
+            assert curves[k, b] == pytest.approx(expected, rel=1e-12)
+    assert np.argmin(blend.block_error_curves(noisy, truth, truth).sum(axis=1)) == len(blend.CAP_GRID) - 1
     with pytest.raises(ValueError, match="shapes differ"):
-        blend.cross_validated_weight(noisy, denoised[:-1], truth)
+        blend.block_error_curves(noisy, denoised[:-1], truth)
+    with pytest.raises(ValueError, match=r"\[0, 1\]"):
+        blend.block_error_curves(noisy, denoised, truth, np.array([0.5, 1.5]))
 
 
 @pytest.mark.parametrize("noise, error", [(0.05, 0.05), (0.02, 0.1), (0.1, 0.03)])
@@ -106,7 +112,11 @@ def test_frame_cap_estimates_the_frames_optimal_weight_without_a_reference(noise
     """Denoised error independent of the noise: the optimum is noise^2 / (noise^2 + error^2)."""
     truth, halves, denoise = _halves(11, noise, error)
     expected = noise**2 / (noise**2 + error**2)
-    assert blend.frame_weight_cap(denoise, *halves) == pytest.approx(expected, abs=0.03)
+    assert blend.frame_weight_cap(denoise, *halves, quantile=0.5) == pytest.approx(expected, abs=0.03)
+    # The cap used is a lower bound: the bootstrap's 10% quantile, at most its median, and not far below it.
+    lower = blend.frame_weight_cap(denoise, *halves)
+    assert expected - 0.06 < lower <= blend.frame_weight_cap(denoise, *halves, quantile=0.5)
+    assert blend.frame_weight_cap(denoise, *halves) == blend.frame_weight_cap(denoise, *halves)  # seeded
 
 
 def test_the_cap_only_lowers_the_validated_weight_and_halves_combine():
@@ -122,15 +132,14 @@ def test_the_cap_only_lowers_the_validated_weight_and_halves_combine():
         blend.combine_halves(halves[1], halves[0])
 
 
-def test_clipped_blend_error_kernel_matches_the_numpy_expression():
-    """The numba kernel against the expression it replaces, NaN included."""
-    from reconstruction._blend_kernels import clipped_blend_error
+def test_block_errors_kernel_propagates_nan_as_numpy():
+    from reconstruction._blend_kernels import clipped_blend_block_errors
 
     rng = np.random.default_rng(11)
-    noisy, change = rng.uniform(-0.5, 1.5, 10_000), rng.normal(0.0, 0.5, 10_000)
-    goal = np.clip(rng.uniform(-0.2, 1.2, 10_000), 0.0, 1.0)
-    for weight in (0.0, 0.3, 0.618, 1.0, 1.7):
-        expected = np.sum((np.clip(noisy + weight * change, 0.0, 1.0) - goal) ** 2)
-        assert clipped_blend_error(noisy, change, goal, weight) == pytest.approx(expected, rel=1e-12)
-    noisy[17] = np.nan
-    assert np.isnan(clipped_blend_error(noisy, change, goal, 0.5))
+    noisy, change, goal = (rng.uniform(0.0, 1.0, (16, 24, 3)) for _ in range(3))
+    noisy[3, 10, 1] = np.nan  # block (0, 1)
+    out = clipped_blend_block_errors(noisy, change, goal, 8, np.array([0.0, 0.5]))
+    assert out.shape == (2, 6)
+    assert np.isnan(out[:, 1]).all() and np.isfinite(np.delete(out, 1, axis=1)).all()
+
+
