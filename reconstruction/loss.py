@@ -79,17 +79,7 @@ def log_kernel_1d(sigma: float, truncate: float = 4.0) -> tuple[np.ndarray, np.n
 def log_kernel(sigma: float, truncate: float = 4.0) -> np.ndarray:
     """Discrete 2-D LoG kernel, identical to the one ``scipy.ndimage.gaussian_laplace`` applies.
 
-    Parameters
-    ----------
-    sigma : float
-        Gaussian standard deviation in pixels (> 0).
-    truncate : float
-        Radius in standard deviations; radius = ``int(truncate·sigma + 0.5)``.
-
-    Returns
-    -------
-    numpy.ndarray
-        Shape (2r + 1, 2r + 1), float64.
+    ``sigma`` and ``truncate`` as for :func:`log_kernel_1d`; returns a (2r + 1, 2r + 1) float64 array.
     """
     gauss, second = log_kernel_1d(sigma, truncate)
     return np.outer(second, gauss) + np.outer(gauss, second)
