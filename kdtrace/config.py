@@ -308,8 +308,12 @@ class ReconstructionProfile:
     patience : int
         Early stopping: training ends after this many epochs without a lower validation loss
         (0: run all ``epochs``).
+    denoiser_epochs : int
+        Epochs of each per-scene denoiser, the paper's net and its variants (0: ``epochs``, which
+        superresolution keeps).
     mixed_epochs : int
-        Epochs of the mixed model, whose epoch holds every scene's crops (0: ``epochs``).
+        Epochs of the mixed model, whose epoch holds every scene's crops (0: the per-scene
+        denoisers' count).
     denoiser_edge_range_floor : float
         Smallest target LoG range the denoiser loss's edge maps are normalised by
         (:class:`reconstruction.loss.EdgeAwareLoss`; default
@@ -356,6 +360,7 @@ class ReconstructionProfile:
     superres_augment: bool = False
     precision: str = "fp32"
     patience: int = 0
+    denoiser_epochs: int = 0
     mixed_epochs: int = 0
     denoiser_edge_range_floor: float = 0.1
     normal_depth_warmup_steps: int = 0
@@ -370,9 +375,15 @@ class ReconstructionProfile:
         return self.learning_rate if self.denoiser_learning_rate is None else self.denoiser_learning_rate
 
     @property
+    def denoiser(self) -> ReconstructionProfile:
+        """This profile with a per-scene denoiser's epoch count as ``epochs``."""
+        return dataclasses.replace(self, epochs=self.denoiser_epochs or self.epochs, denoiser_epochs=0)
+
+    @property
     def mixed(self) -> ReconstructionProfile:
-        """This profile with the mixed model's epoch count."""
-        return dataclasses.replace(self, epochs=self.mixed_epochs or self.epochs)
+        """This profile with the mixed model's epoch count as ``epochs``."""
+        return dataclasses.replace(self, epochs=self.mixed_epochs or self.denoiser.epochs, denoiser_epochs=0,
+                                   mixed_epochs=0)
 
     def __post_init__(self) -> None:
         counts = (self.positions, self.views_per_position, self.width, self.height, self.spp, self.reference_spp,
@@ -388,8 +399,8 @@ class ReconstructionProfile:
             raise ValueError("reconstruction.superres_downsample must be 'area' or 'bicubic'")
         if self.precision not in ("fp32", "bf16", "auto"):
             raise ValueError("reconstruction.precision must be 'fp32', 'bf16' or 'auto'")
-        if self.mixed_epochs < 0:
-            raise ValueError("reconstruction.mixed_epochs must be >= 0 (0: the same as epochs)")
+        if self.mixed_epochs < 0 or self.denoiser_epochs < 0:
+            raise ValueError("reconstruction.denoiser_epochs and mixed_epochs must be >= 0 (0: the default count)")
         if self.patience < 0:
             raise ValueError("reconstruction.patience must be >= 0 (0: no early stopping)")
         if self.normal_depth_warmup_steps < 0 or self.denoiser_warmup_steps < 0:

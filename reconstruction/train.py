@@ -525,7 +525,8 @@ def train_denoiser(scene_names: list[str] | tuple[str, ...], profile: str | Reco
     ----------
     scene_names : sequence of str
     profile : str or ReconstructionProfile
-        Dataset, crop and training settings.
+        Dataset, crop and training settings; trained for its ``denoiser_epochs`` (else ``epochs``;
+        the mixed model is given :attr:`ReconstructionProfile.mixed`).
     model : nn.Module, optional
         Default :class:`reconstruction.models.Denoiser` with ``auxiliary`` and
         ``demodulate``, initialised after ``torch.manual_seed(profile.seed)``.
@@ -554,7 +555,7 @@ def train_denoiser(scene_names: list[str] | tuple[str, ...], profile: str | Reco
     """
     from reconstruction.hdr import decode
 
-    profile = _resolve(profile)
+    profile = _resolve(profile).denoiser
     data, data_hash = denoiser_data(scene_names, profile, auxiliary, progress=progress)
     if model is None:
         from reconstruction.models import Denoiser

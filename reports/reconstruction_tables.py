@@ -339,7 +339,8 @@ def _measure(config: Config, profile_name: str, fresh: bool, progress: bool,
                         **{f"{name} {variant.label}": result.best_epoch
                            for variant, trained in variant_models.items() for name, result in trained.items()},
                         "superres": superres.best_epoch},
-        "epochs": recon.epochs,
+        "epochs": {"per-scene denoisers": recon.denoiser.epochs, "mixed": recon.mixed.epochs,
+                   "superresolution": recon.epochs},
         "parameters": {"denoiser": parameter_count(mixed.model), "superres": parameter_count(superres.model),
                        **{f"{variant.key}_denoiser": parameter_count(next(iter(trained.values())).model)
                           for variant, trained in variant_models.items() if trained}},
@@ -623,7 +624,8 @@ def _header(stem: str, m: dict, provenance: dict, reconstruction: Any) -> str:
     return (f"# {title} ({m['profile']} profile)\n\n{note}\n\n"
             f"Reconstruction profile `{m['reconstruction_profile']}` ({reconstruction.width}x{reconstruction.height} "
             f"views, {reconstruction.spp} spp input, {reconstruction.reference} references at "
-            f"{reconstruction.reference_spp} spp, {m['epochs']} epochs; {_schedule(reconstruction)}; kept epochs: "
+            f"{reconstruction.reference_spp} spp; epochs: "
+            + ", ".join(f"{k} {v}" for k, v in m["epochs"].items()) + f"; {_schedule(reconstruction)}; kept epochs: "
             + ", ".join(f"{k} {v}" for k, v in m["best_epochs"].items()) + "). "
             f"Training arithmetic on this machine: {why or precision}. "
             f"Machine: {machine['cpu']}, {machine['cores']} cores; {machine['date']}. {cache}\n\n")

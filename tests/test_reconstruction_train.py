@@ -280,6 +280,27 @@ def test_warmup_and_decay_are_part_of_the_model_key_only_when_used():
     assert train._training_dir("denoiser", model, loss, "hash", longer, rate) == plain
 
 
+def test_epoch_counts_of_per_scene_denoisers_mixed_model_and_superresolution():
+    base = dataclasses.replace(PROFILE, epochs=5)
+    assert (base.denoiser.epochs, base.mixed.epochs) == (5, 5)  # 0: every model trains `epochs`
+    longer = dataclasses.replace(base, denoiser_epochs=15)
+    assert (longer.denoiser.epochs, longer.mixed.epochs, longer.epochs) == (15, 15, 5)
+    own = dataclasses.replace(longer, mixed_epochs=6)
+    # train_denoiser resolves `.denoiser` of whatever profile it is given, the mixed one included
+    assert (own.mixed.epochs, own.mixed.denoiser.epochs, own.denoiser.epochs) == (6, 6, 15)
+    with pytest.raises(ValueError, match="denoiser_epochs"):
+        dataclasses.replace(base, denoiser_epochs=-1)
+
+
+def test_a_denoiser_trains_for_the_profiles_denoiser_epochs(tmp_path):
+    profile = dataclasses.replace(PROFILE, epochs=1, denoiser_epochs=2)
+    torch.manual_seed(PROFILE.seed)
+    result = train.train_denoiser([SCENE], profile, model=TinyDenoiser(), loss_fn=nn.MSELoss(),
+                                  directory=tmp_path / "run", psnr=_psnr, progress=False)
+    assert [row["epoch"] for row in result.history] == [1, 2]
+    assert json.loads((tmp_path / "run" / "result.json").read_text())["provenance"]["config"]["epochs"] == 2
+
+
 def test_profiles_warm_up_only_the_standard_normal_depth_variant():
     profiles = DEFAULT_CONFIG.reconstruction
     assert profiles.profile("standard").normal_depth_warmup_steps == 100

@@ -129,7 +129,8 @@ def _reconstruction_stand_in(config, profile_name, fresh, progress, denoisers=()
     m = {"profile": profile_name, "reconstruction_profile": "quick", "scenes": [SCENE], "unseen": "", "far": "",
          "frame": [SIZE, SIZE], "frame_spp": 2, "stages": [{"name": f"denoiser {SCENE}", "seconds": 1.0, "reused": True},
                                                           {"name": "mixed denoiser", "seconds": 1.0, "reused": True}],
-         "epochs": 2, "best_epochs": {SCENE: 2}, "parameters": {"denoiser": 10, "superres": 5}, "quality": quality,
+         "epochs": {"per-scene denoisers": 2, "mixed": 2, "superresolution": 2}, "best_epochs": {SCENE: 2},
+         "parameters": {"denoiser": 10, "superres": 5}, "quality": quality,
          "unseen_quality": None, "far_quality": None, "photos": photos, "timing": timing}
     noisy, reference = _render(2, 7), _render(64, 8)
     frame = Frame(SCENE, *(np.asarray(a, np.float32) for a in (noisy.rgb, noisy.albedo, noisy.normal, reference.rgb)),

@@ -59,7 +59,8 @@ def _measurements() -> dict:
     photos = {split: {"bicubic": _pooled(30.0), "lanczos": _pooled(30.1), "ours": _pooled(30.5)}
               for split in ("train", "validation", "test")}
     return {"profile": "quick", "reconstruction_profile": "quick", "scenes": SCENES, "unseen": UNSEEN,
-            "frame": [256, 256], "frame_spp": 4, "stages": stages, "epochs": 40,
+            "frame": [256, 256], "frame_spp": 4, "stages": stages,
+            "epochs": {"per-scene denoisers": 40, "mixed": 40, "superresolution": 40},
             "best_epochs": {"cbox-sphere": 30, "car": 20, "mixed": 40, "superres": 10},
             "parameters": {"denoiser": 95107, "superres": 37793}, "quality": quality,
             "unseen_quality": {"views": 7, "noisy": _pooled(20.0), "ours": _pooled(22.0), "oidn": _pooled(27.0)},
