@@ -129,6 +129,21 @@ def _block_sums(values: np.ndarray, block: int) -> np.ndarray:
     return np.add.reduceat(rows, np.arange(0, width, block), axis=1).ravel()
 
 
+def _bootstrap_counts(blocks: int, seed: int) -> np.ndarray:
+    """How often each of ``blocks`` blocks is drawn in each of :data:`BOOTSTRAP_SAMPLES` resamplings.
+
+    Returns
+    -------
+    numpy.ndarray
+        Shape (BOOTSTRAP_SAMPLES, blocks), float64: a resampling's sum of per-block values is
+        ``counts @ values``.
+    """
+    picks = np.random.default_rng(seed).integers(0, blocks, size=(BOOTSTRAP_SAMPLES, blocks))
+    offsets = np.arange(BOOTSTRAP_SAMPLES)[:, None] * blocks
+    return np.bincount((picks + offsets).ravel(), minlength=BOOTSTRAP_SAMPLES * blocks).reshape(
+        BOOTSTRAP_SAMPLES, blocks).astype(np.float64)
+
+
 def optimal_weight(noisy: Sequence[np.ndarray], denoised: Sequence[np.ndarray], references: Sequence[np.ndarray],
                    quantile: float | None = None, seed: int = 0) -> float:
     """The least-squares weight ``w*`` of the denoised images over their inputs, clipped to [0, 1].
@@ -158,8 +173,8 @@ def optimal_weight(noisy: Sequence[np.ndarray], denoised: Sequence[np.ndarray], 
         return 1.0
     if quantile is None:
         return float(np.clip(numerator.sum() / denominator.sum(), 0.0, 1.0))
-    picks = np.random.default_rng(seed).integers(0, len(numerator), size=(BOOTSTRAP_SAMPLES, len(numerator)))
-    resampled = numerator[picks].sum(axis=1) / np.maximum(denominator[picks].sum(axis=1), 1e-300)
+    counts = _bootstrap_counts(len(numerator), seed)
+    resampled = counts @ numerator / np.maximum(counts @ denominator, 1e-300)
     return float(np.clip(np.quantile(resampled, quantile), 0.0, 1.0))
 
 
@@ -241,9 +256,7 @@ def frame_weight_cap(denoise: Callable[[np.ndarray, np.ndarray], np.ndarray], fi
     curves = sum(block_error_curves(a.rgb, denoise(a.rgb, a.albedo), b.rgb) for a, b in ((first, second), (second, first)))
     if not np.all(np.isfinite(curves)):
         raise ValueError("the halves or their denoised images are not finite")
-    blocks = curves.shape[1]
-    picks = np.random.default_rng(seed).integers(0, blocks, size=(BOOTSTRAP_SAMPLES, blocks))
-    counts = np.stack([np.bincount(row, minlength=blocks) for row in picks]).astype(np.float64)
+    counts = _bootstrap_counts(curves.shape[1], seed)
     half = float(np.quantile(CAP_GRID[np.argmin(counts @ curves.T, axis=1)], quantile))
     return half / (2.0 - half)
 
