@@ -180,3 +180,29 @@ def test_generate_end_to_end_and_reuse(tmp_path, monkeypatch, shared_scenes):
     psnrs = {m.name: m.value for m in metrics if m.kind == "psnr"}
     assert psnrs == {m.name: m.value for m in again if m.kind == "psnr"}  # same cached models, same numbers
     assert {m.name for m in read_metrics(tmp_path / "out" / "metrics" / "reconstruction.json")} == {m.name for m in again}
+
+
+class _Views:
+    """Stand-in dataset: named views with a noisy input and a reference."""
+
+    def __init__(self, views):
+        self._views = views
+
+    def views(self, split):
+        return list(self._views)
+
+    def load_view(self, name):
+        return self._views[name]
+
+
+def test_reference_noise_per_view_and_pooled():
+    reference = np.full((4, 4, 3), 0.5)
+    # squared errors 0.01 and 0.04 between noisy input and reference; at 4 and 12 spp the
+    # reference's own share of them is 4/16
+    views = _Views({"a": {"noisy": reference + 0.1, "reference": reference},
+                    "b": {"noisy": reference - 0.2, "reference": reference}})
+    noise = rt.reference_noise(views, "test", spp=4, reference_spp=12)
+    assert noise["views"] == 2
+    assert noise["lowest_psnr"] == pytest.approx(-10 * math.log10(0.04 / 4))
+    assert noise["pooled_psnr"] == pytest.approx(-10 * math.log10(0.025 / 4))
+    assert noise["lowest_psnr"] < noise["pooled_psnr"] < -10 * math.log10(0.01 / 4)
