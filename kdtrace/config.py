@@ -382,7 +382,7 @@ class ReconstructionProfile:
     @property
     def mixed(self) -> ReconstructionProfile:
         """This profile with the mixed model's epoch count as ``epochs``."""
-        return dataclasses.replace(self, epochs=self.mixed_epochs or self.denoiser.epochs, denoiser_epochs=0,
+        return dataclasses.replace(self, epochs=self.mixed_epochs or self.denoiser_epochs or self.epochs, denoiser_epochs=0,
                                    mixed_epochs=0)
 
     def __post_init__(self) -> None:

@@ -146,10 +146,13 @@ def reference_noise(dataset, split: str, spp: int, reference_spp: int) -> dict[s
     for name in dataset.views(split):
         view = dataset.load_view(name)
         errors.append(float(np.mean((np.clip(view["noisy"], 0, 1) - np.clip(view["reference"], 0, 1)) ** 2)) * share)
-    values = [math.inf if error == 0 else -10.0 * math.log10(error) for error in errors]
-    pooled = float(np.mean(errors))  # every view has the same pixel count
+    def to_psnr(mse: float) -> float:
+        return math.inf if mse == 0 else -10.0 * math.log10(mse)
+
+    values = [to_psnr(error) for error in errors]
     return {"lowest_psnr": float(min(values)), "median_psnr": float(np.median(values)),
-            "pooled_psnr": math.inf if pooled == 0 else -10.0 * math.log10(pooled), "views": len(values)}
+            # every view has the same pixel count, so the pooled error is the views' mean
+            "pooled_psnr": to_psnr(float(np.mean(errors))), "views": len(values)}
 
 
 def measure_plugin_denoisers(specs: list[str], scenes: list[str], datasets: dict[str, Any], frames: dict[str, Any],
