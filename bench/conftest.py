@@ -39,6 +39,7 @@ from bench._measure import (
     write_json_atomic,
 )
 from bench._plugins import PLUGINS_KEY, BenchPlugins, is_plugin
+from kdtrace.allocator import retain_freed_memory
 from kdtrace.kdtree import VARIANTS, build_kdtree
 from kdtrace.procedural import random_soup
 from kdtrace.scenes import list_scenes, load_scene
@@ -62,6 +63,7 @@ def pytest_addoption(parser):
 
 
 def pytest_configure(config):
+    retain_freed_memory()  # the allocator of `kdtrace report`, so bench and report time the same thing
     config.stash[RESULTS_KEY] = Results()
     # Raises pytest.UsageError naming a plug-in that cannot be imported or loaded.
     config.stash[PLUGINS_KEY] = BenchPlugins.from_options(config.getoption("bench_accelerator"),
