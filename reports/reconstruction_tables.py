@@ -106,19 +106,23 @@ TABLES = ("table2", "table3", "table5", "table6", "quality")
 # ------------------------------------------------------------------ stages
 @dataclasses.dataclass
 class Stage:
-    """One dataset or training run: its seconds and whether the cache already held it."""
+    """One dataset or training run: its seconds, whether the cache already held it and, for a
+    model, the seconds of its training epochs (summed from its history, also when reused)."""
 
     name: str
     seconds: float
     reused: bool
+    training_seconds: float | None = None
 
 
 def _run_stage(stages: list[Stage], name: str, started: float, work: Callable[[], Any],
-               was_made: Callable[[Any], float]) -> Any:
-    """Run ``work``, record its seconds and whether its artefact predates ``started`` (reused)."""
+               was_made: Callable[[Any], float], training_seconds: Callable[[Any], float] | None = None) -> Any:
+    """Run ``work``, record its seconds, whether its artefact predates ``started`` (reused) and
+    ``training_seconds(result)`` when given."""
     begin = time.perf_counter()
     result = work()
-    stages.append(Stage(name, time.perf_counter() - begin, was_made(result) < started))
+    stages.append(Stage(name, time.perf_counter() - begin, was_made(result) < started,
+                        training_seconds(result) if training_seconds else None))
     return result
 
 
@@ -128,6 +132,10 @@ def _dataset_made(dataset) -> float:
 
 def _model_made(result) -> float:
     return (result.directory / "checkpoint.pt").stat().st_mtime
+
+
+def _training_seconds(result) -> float:
+    return sum(epoch["seconds"] for epoch in result.history)
 
 
 # ------------------------------------------------------------------ measurement
@@ -254,13 +262,13 @@ def _measure(config: Config, profile_name: str, fresh: bool, progress: bool,
     for name in scenes:
         step(f"denoiser {name}")
         models[name] = _run_stage(stages, f"denoiser {name}", started,
-                                  lambda name=name: train_denoiser([name], recon, progress=False), _model_made)
+                                  lambda name=name: train_denoiser([name], recon, progress=False), _model_made, _training_seconds)
         bar.update()
     # the paper's models (per-scene, then mixed) before the documented variants: an interrupted
     # run has the measured objects first
     step("mixed denoiser")
     mixed = _run_stage(stages, "mixed denoiser", started, lambda: train_denoiser(scenes, recon.mixed, progress=False),
-                       _model_made)
+                       _model_made, _training_seconds)
     bar.update()
     variant_models: dict[DenoiserVariant, dict[str, Any]] = {variant: {} for variant in DENOISER_VARIANTS}
     for variant, names in variants.items():
@@ -271,11 +279,11 @@ def _measure(config: Config, profile_name: str, fresh: bool, progress: bool,
                 lambda name=name, variant=variant: train_denoiser(
                     [name], recon, auxiliary=variant.auxiliary, demodulate=variant.demodulate, progress=False,
                     warmup_steps=getattr(recon, variant.warmup_field) if variant.warmup_field else 0),
-                _model_made)
+                _model_made, _training_seconds)
             bar.update()
     step("superresolution")
     superres = _run_stage(stages, "superresolution", started,
-                          lambda: train_superres(recon, scenes, progress=False), _model_made)
+                          lambda: train_superres(recon, scenes, progress=False), _model_made, _training_seconds)
     bar.update()
 
     quality: dict[str, Any] = {}
@@ -374,8 +382,13 @@ def _paper_name(scene: str) -> str:
 
 
 def _reused(stages: list[dict], name: str) -> str:
+    """How a model came: "trained N s" in this run, else "reused (trained N s)"; N sums its
+    training epochs (the stage's wall time, or a bare "reused", in measurements before 2026-12-06)."""
     stage = next(s for s in stages if s["name"] == name)
-    return "reused" if stage["reused"] else f"trained {stage['seconds']:.0f} s"
+    trained = stage.get("training_seconds")
+    if not stage["reused"]:
+        return f"trained {stage['seconds'] if trained is None else trained:.0f} s"
+    return "reused" if trained is None else f"reused (trained {trained:.0f} s)"
 
 
 def _table2(m: dict) -> list[dict]:

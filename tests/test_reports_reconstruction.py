@@ -53,7 +53,7 @@ def _measurements() -> dict:
                                   "matmul_gflops": 120.0, "floor_seconds": 0.165}}
               for name in SCENES}
     stages = ([{"name": f"dataset {n}", "seconds": 1.0, "reused": True} for n in [*SCENES, UNSEEN]]
-              + [{"name": f"denoiser {n}", "seconds": 0.5, "reused": True} for n in SCENES]
+              + [{"name": f"denoiser {n}", "seconds": 0.5, "reused": True, "training_seconds": 30.4} for n in SCENES]
               + [{"name": "mixed denoiser", "seconds": 12.0, "reused": False},
                  {"name": "superresolution", "seconds": 0.5, "reused": True}])
     photos = {split: {"bicubic": _pooled(30.0), "lanczos": _pooled(30.1), "ours": _pooled(30.5)}
@@ -76,7 +76,7 @@ def test_tables_from_measurements(tmp_path):
         pd.testing.assert_frame_equal(pd.read_csv(tmp_path / f"{stem}.csv"), frames[stem], check_dtype=False)
     table2 = frames["table2"].set_index(["scene", "model"])
     assert table2.loc[("cbox-sphere", "per-scene"), "paper_test_psnr"] == TABLE2["cbox-sphere"]["test_psnr"]
-    assert table2.loc[("cbox-sphere", "per-scene"), "model_source"] == "reused"
+    assert table2.loc[("cbox-sphere", "per-scene"), "model_source"] == "reused (trained 30 s)"
     assert table2.loc[("car", "mixed"), "model_source"] == "trained 12 s"
     # both scenes' mixed test views pooled: equal pixel counts, so the MSEs average
     expected = -10 * math.log10((10 ** (-28.5 / 10) + 10 ** (-29.5 / 10)) / 2)
