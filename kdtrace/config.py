@@ -282,6 +282,10 @@ class ReconstructionProfile:
         Samples per pixel of the reference (paper: 1024-4096).
     crop_size, crops_per_view : int
         Side of the square training crops, pixels, and crops drawn per view (paper: 128, 32).
+    crops_per_view_by_scene : dict of str -> int
+        Scenes whose views give another number of denoiser crops than ``crops_per_view``, in
+        every model that learns from them (their per-scene nets and the mixed model); kept as
+        sorted (scene, count) pairs. Read it through :meth:`crops_for`.
     validation_fraction, test_fraction : float
         Fractions of the accepted views held out for validation and test (split by view).
     epochs, batch_size : int
@@ -349,6 +353,7 @@ class ReconstructionProfile:
     reference_spp: int = 1024
     crop_size: int = 128
     crops_per_view: int = 32
+    crops_per_view_by_scene: tuple[tuple[str, int], ...] = ()
     validation_fraction: float = 0.15
     test_fraction: float = 0.15
     epochs: int = 100
@@ -374,6 +379,10 @@ class ReconstructionProfile:
         """Peak learning rate of the denoisers: ``denoiser_learning_rate``, else ``learning_rate``."""
         return self.learning_rate if self.denoiser_learning_rate is None else self.denoiser_learning_rate
 
+    def crops_for(self, scene_name: str) -> int:
+        """Denoiser crops drawn per view of ``scene_name``."""
+        return dict(self.crops_per_view_by_scene).get(scene_name, self.crops_per_view)
+
     @property
     def denoiser(self) -> ReconstructionProfile:
         """This profile with a per-scene denoiser's epoch count as ``epochs``."""
@@ -386,8 +395,12 @@ class ReconstructionProfile:
                                    mixed_epochs=0)
 
     def __post_init__(self) -> None:
+        by_scene = dict(self.crops_per_view_by_scene)  # a TOML table or the pairs
+        if not all(isinstance(name, str) and isinstance(count, int) for name, count in by_scene.items()):
+            raise ValueError("reconstruction.crops_per_view_by_scene maps scene names to crop counts")
+        object.__setattr__(self, "crops_per_view_by_scene", tuple(sorted(by_scene.items())))
         counts = (self.positions, self.views_per_position, self.width, self.height, self.spp, self.reference_spp,
-                  self.crop_size, self.crops_per_view, self.epochs, self.batch_size, self.superres_crop_size,
+                  self.crop_size, self.crops_per_view, *by_scene.values(), self.epochs, self.batch_size, self.superres_crop_size,
                   self.superres_crops_per_image)
         if min(counts) < 1:
             raise ValueError("reconstruction counts, sizes, spp, epochs and batch size must be >= 1")

@@ -501,13 +501,17 @@ def denoiser_data(scene_names: list[str] | tuple[str, ...], profile: str | Recon
     if not scene_names:
         raise ValueError("no scenes given")
     datasets = [generate_dataset(name, profile, progress) for name in scene_names]
+    counts = [profile.crops_for(name) for name in scene_names]
     data = {}
     for split in SPLITS:
-        parts = [denoiser_tensors(crops(dataset, split, profile.crop_size, profile.crops_per_view, profile.seed),
-                                  auxiliary, encode) for dataset in datasets]
+        parts = [denoiser_tensors(crops(dataset, split, profile.crop_size, count, profile.seed), auxiliary, encode)
+                 for dataset, count in zip(datasets, counts, strict=True)]
         data[split] = (torch.cat([p[0] for p in parts]), torch.cat([p[1] for p in parts]))
+    # only scenes with their own count add it: every other model keeps its key (and its cache)
+    own_counts = {name: count for name, count in zip(scene_names, counts, strict=True)
+                  if count != profile.crops_per_view}
     data_hash = content_key("denoiser-data", [d.key for d in datasets], list(auxiliary), profile.crop_size,
-                            profile.crops_per_view, profile.seed)
+                            profile.crops_per_view, profile.seed, *([own_counts] if own_counts else []))
     return data, data_hash
 
 

@@ -292,6 +292,23 @@ def test_epoch_counts_of_per_scene_denoisers_mixed_model_and_superresolution():
         dataclasses.replace(base, denoiser_epochs=-1)
 
 
+def test_a_scene_with_its_own_crop_count_changes_only_the_data_that_holds_it():
+    plain, plain_hash = train.denoiser_data([SCENE], PROFILE)
+    doubled = 2 * PROFILE.crops_per_view
+    other = dataclasses.replace(PROFILE, crops_per_view_by_scene={"car": doubled})
+    assert other.crops_per_view_by_scene == (("car", doubled),) and other.crops_for("car") == doubled
+    # a scene without its own count keeps its crops and its key, so its cached models stay valid
+    assert train.denoiser_data([SCENE], other)[1] == plain_hash
+    own = dataclasses.replace(PROFILE, crops_per_view_by_scene={SCENE: doubled})
+    more, more_hash = train.denoiser_data([SCENE], own)
+    assert more_hash != plain_hash
+    for split, (inputs, _) in plain.items():
+        assert len(more[split][0]) == 2 * len(inputs)
+    for bad in ({"car": "many"}, {"car": 0}):
+        with pytest.raises(ValueError, match="crops_per_view_by_scene|counts"):
+            dataclasses.replace(PROFILE, crops_per_view_by_scene=bad)
+
+
 def test_a_denoiser_trains_for_the_profiles_denoiser_epochs(tmp_path):
     profile = dataclasses.replace(PROFILE, epochs=1, denoiser_epochs=2)
     torch.manual_seed(PROFILE.seed)
