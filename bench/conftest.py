@@ -39,7 +39,7 @@ from bench._measure import (
     write_json_atomic,
 )
 from bench._plugins import PLUGINS_KEY, BenchPlugins, is_plugin
-from kdtrace.allocator import retain_freed_memory
+from kdtrace.allocator import freed_memory_retained
 from kdtrace.kdtree import VARIANTS, build_kdtree
 from kdtrace.procedural import random_soup
 from kdtrace.scenes import list_scenes, load_scene
@@ -62,8 +62,14 @@ def pytest_addoption(parser):
                          "kdtrace.denoisers or package.module:factory (repeatable, or comma-separated)")
 
 
+@pytest.fixture(autouse=True)
+def _timed_with_freed_memory_retained():
+    """Every benchmark runs as the report's timed sections do (:func:`kdtrace.allocator.freed_memory_retained`)."""
+    with freed_memory_retained():
+        yield
+
+
 def pytest_configure(config):
-    retain_freed_memory()  # the allocator of `kdtrace report`, so bench and report time the same thing
     config.stash[RESULTS_KEY] = Results()
     # Raises pytest.UsageError naming a plug-in that cannot be imported or loaded.
     config.stash[PLUGINS_KEY] = BenchPlugins.from_options(config.getoption("bench_accelerator"),

@@ -18,7 +18,6 @@ from pathlib import Path
 from tabulate import tabulate
 from tqdm import tqdm
 
-from kdtrace.allocator import retain_freed_memory
 from kdtrace.config import load_config
 
 REPOSITORY = Path(__file__).resolve().parents[1]
@@ -306,7 +305,6 @@ def _show_warnings_as_lines(quiet: bool) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    retain_freed_memory()  # before anything is timed: every measurement of the run sees one allocator
     with warnings.catch_warnings():
         _show_warnings_as_lines(args.quiet)
         try:

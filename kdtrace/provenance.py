@@ -66,14 +66,14 @@ def machine() -> dict[str, object]:
     """CPU model and vector tier, logical cores, numba threads, allocator, OS, Python and the UTC date."""
     import numba
 
-    from kdtrace.allocator import allocator_state
+    from kdtrace.allocator import allocator_policy
 
     return {
         "cpu": cpu_model(),
         "cpu_isa": cpu_isa(),
         "cores": os.cpu_count(),
         "numba_threads": numba.get_num_threads(),
-        "allocator": allocator_state(),
+        "allocator": allocator_policy(),
         "platform": platform.platform(),
         "python": platform.python_version(),
         "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),

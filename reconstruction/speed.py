@@ -29,23 +29,28 @@ import numpy as np
 import torch
 from torch import nn
 
+from kdtrace.allocator import freed_memory_retained
 from reconstruction import hdr, metrics
 from reconstruction.inference import FastInferenceDecision, denoise, make_runner, select_fast_inference
 from reconstruction.models import bicubic_upsample, superresolve, ycbcr_from_rgb
 
 
 def median_seconds(call: Callable[[], object], repeats: int = 3, warmup: int = 1) -> tuple[float, object]:
-    """Median wall time (s) of ``repeats`` calls after ``warmup`` untimed ones, and the last result."""
+    """Median wall time (s) of ``repeats`` calls after ``warmup`` untimed ones, and the last result.
+
+    The calls run with freed memory kept for reuse (:func:`kdtrace.allocator.freed_memory_retained`).
+    """
     if repeats < 1:
         raise ValueError(f"repeats must be >= 1, got {repeats}")
     result = None
-    for _ in range(warmup):
-        result = call()
     times = []
-    for _ in range(repeats):
-        started = time.perf_counter()
-        result = call()
-        times.append(time.perf_counter() - started)
+    with freed_memory_retained():
+        for _ in range(warmup):
+            result = call()
+        for _ in range(repeats):
+            started = time.perf_counter()
+            result = call()
+            times.append(time.perf_counter() - started)
     return statistics.median(times), result
 
 

@@ -78,6 +78,7 @@ import pandas as pd
 from tabulate import tabulate
 from tqdm import tqdm
 
+from kdtrace.allocator import freed_memory_retained
 from kdtrace.cache import atomic_write_bytes, content_key
 from kdtrace.config import Config, ProfileConfig, ReconstructionProfile
 from kdtrace.provenance import stamp
@@ -819,7 +820,8 @@ def scene_rows(kind: str, version: int, measure_scene: Callable[..., dict], conf
             models.append(Reconstruction.load(names, recon, names, progress, blend_spp=blend_spp,
                                               demodulated_scenes=demodulated_scenes) if networks else None)
         load_before = os.getloadavg()[0]
-        row = measure_scene(name, config, profile_name, models[0], bar)
+        with freed_memory_retained():  # a scene's renders and reconstructions, timed, reuse freed memory
+            row = measure_scene(name, config, profile_name, models[0], bar)
         row["load_average"] = [load_before, os.getloadavg()[0]]
         record = {"key": key, "measured_at": time.strftime("%Y-%m-%d %H:%M:%S"), "row": row}
         atomic_write_bytes(path, json.dumps(record, indent=1).encode())

@@ -616,8 +616,8 @@ _TITLES = {
                "512 -> 1024; only ratios compare across machines. Superresolution arithmetic: superres_gflop is "
                "the network's work per output frame (2 FLOP per weight and output pixel), superres_gflops its "
                "achieved rate, matmul_gflops this machine's dense matmul rate in the same mode and run, and "
-               "superres_floor_s their quotient, the network's time at that rate. The process keeps freed memory "
-               "for reuse (the allocator in the provenance's machine record), as every timing of the run does."),
+               "superres_floor_s their quotient, the network's time at that rate. Timed calls keep freed memory "
+               "for reuse (the allocator in the provenance's machine record), as the sweep's timings do."),
     "quality": ("Reconstruction quality on the test views (PSNR, dB)",
                 "Denoising: noisy input / our per-scene model / the mixed model / OIDN (albedo and normal); "
                 "superresolution 2x: bicubic / Lanczos / ours. Paper figures from Tables 2 and 3."),
