@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import ctypes
 import ctypes.util
+import functools
 import platform
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -34,6 +35,7 @@ TRIM_THRESHOLD = 2**31 - 1
 _depth = 0  # nesting of freed_memory_retained (the outermost one sets and restores)
 
 
+@functools.cache  # find_library runs ldconfig: once per process
 def _glibc():
     """glibc as a ctypes library, or None on another C library (musl, macOS, Windows)."""
     if platform.libc_ver()[0] != "glibc":
