@@ -554,8 +554,9 @@ def generate_dataset(scene: str | Scene, profile: str | ReconstructionProfile = 
         "views": records, "splits": split_views(accepted, profile),
         "provenance": stamp(dataclasses.asdict(profile)),
     }
-    atomic_write_bytes(manifest_path, json.dumps(manifest, indent=1).encode())
-    return Dataset(root, manifest)
+    encoded = json.dumps(manifest, indent=1)
+    atomic_write_bytes(manifest_path, encoded.encode())
+    return Dataset(root, json.loads(encoded))  # as a later cache hit reads it (tuples become lists)
 
 
 def _render_distributed(scene: Scene, profile: ReconstructionProfile, views: list[ViewSpec], root: Path, key: str,
