@@ -336,6 +336,11 @@ class ReconstructionProfile:
     denoiser_warmup_steps : int
         Linear learning-rate warm-up, in Adam steps, of every denoiser (0: none); a variant with
         a longer warm-up of its own (``normal_depth_warmup_steps``) keeps the longer one.
+    model_store : str
+        Folder, relative to the working directory, where each finished model is copied
+        (``<model_store>/<kind>-<key>``: kept weights, history, plot, ``result.json``) and found
+        again by a machine whose cache lacks it (:mod:`reconstruction.train`); "" for none.
+        Not part of any cache key.
     seed : int
         Seed of camera positions, render seeds, crops, splits, initialisation and shuffling.
     """
@@ -372,6 +377,7 @@ class ReconstructionProfile:
     denoiser_learning_rate: float | None = None
     denoiser_decay: str = "constant"
     denoiser_warmup_steps: int = 0
+    model_store: str = ""
     seed: int = 20261122
 
     @property

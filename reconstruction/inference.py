@@ -307,14 +307,23 @@ class FastInferenceDecision:
     results: tuple[OptionResult, ...]
 
 
-def _median_seconds(run, x, repeats: int) -> float:
+def median_seconds(call: Callable[[], object], repeats: int = 3, warmup: int = 1) -> tuple[float, object]:
+    """Median wall time (s) of ``repeats`` calls after ``warmup`` untimed ones, and the last result.
+
+    The calls run with freed memory kept for reuse (:func:`kdtrace.allocator.freed_memory_retained`).
+    """
+    if repeats < 1:
+        raise ValueError(f"repeats must be >= 1, got {repeats}")
+    result = None
     times = []
-    with freed_memory_retained():  # as reconstruction.speed times the chosen mode
+    with freed_memory_retained():
+        for _ in range(warmup):
+            result = call()
         for _ in range(repeats):
-            start = time.perf_counter()
-            run(x)
-            times.append(time.perf_counter() - start)
-    return statistics.median(times)
+            started = time.perf_counter()
+            result = call()
+            times.append(time.perf_counter() - started)
+    return statistics.median(times), result
 
 
 def select_fast_inference(
@@ -355,8 +364,7 @@ def select_fast_inference(
     measured = []
     for option in options:
         run = make_runner(model, option)
-        output = run(x)  # warm-up (and trace)
-        measured.append((option, _median_seconds(run, x, repeats), output))
+        measured.append((option, *median_seconds(lambda run=run: run(x), repeats)))  # one warm-up (and trace)
     base_seconds, base_output = measured[0][1], measured[0][2]
 
     def quality(output) -> float:

@@ -20,38 +20,15 @@ Seconds are wall-clock on this machine; only ratios within one run are meaningfu
 
 from __future__ import annotations
 
-import statistics
-import time
-from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 import torch
 from torch import nn
 
-from kdtrace.allocator import freed_memory_retained
 from reconstruction import hdr, metrics
-from reconstruction.inference import FastInferenceDecision, denoise, make_runner, select_fast_inference
+from reconstruction.inference import FastInferenceDecision, denoise, make_runner, median_seconds, select_fast_inference
 from reconstruction.models import bicubic_upsample, superresolve, ycbcr_from_rgb
-
-
-def median_seconds(call: Callable[[], object], repeats: int = 3, warmup: int = 1) -> tuple[float, object]:
-    """Median wall time (s) of ``repeats`` calls after ``warmup`` untimed ones, and the last result.
-
-    The calls run with freed memory kept for reuse (:func:`kdtrace.allocator.freed_memory_retained`).
-    """
-    if repeats < 1:
-        raise ValueError(f"repeats must be >= 1, got {repeats}")
-    result = None
-    times = []
-    with freed_memory_retained():
-        for _ in range(warmup):
-            result = call()
-        for _ in range(repeats):
-            started = time.perf_counter()
-            result = call()
-            times.append(time.perf_counter() - started)
-    return statistics.median(times), result
 
 
 @dataclass(frozen=True)

@@ -19,6 +19,13 @@ Entry points: :func:`train_denoiser` (one scene: the Precision Graphics model; s
 the mixed model), :func:`train_superres`, :func:`evaluate`. The training folder is
 ``cache_root()/models/<kind>-<key>`` where the key hashes the architecture, the loss, the data
 hash and the optimisation settings (not the epoch count, so raising ``epochs`` resumes).
+
+A profile with a ``model_store`` (``standard``) also copies each finished model's kept weights,
+history, plot and ``result.json`` to ``<model_store>/<kind>-<key>``, a folder meant to be
+committed: a machine whose cache lacks the training then reuses that model instead of training
+it again (:func:`_published_result`; the cache's own checkpoint, when there is one, wins).
+Only finished models are copied, so a training interrupted on a machine that is then lost
+restarts from its first epoch.
 """
 
 from __future__ import annotations
@@ -52,6 +59,9 @@ CHECKPOINT_VERSION = 1
 PLOT_EVERY = 10
 #: Examples per forward pass when evaluating (memory bound only; results do not depend on it).
 EVAL_BATCH = 64
+#: A finished model's files copied to its profile's ``model_store``; ``result.json`` last, since
+#: its presence says the copy is complete.
+PUBLISHED_FILES = ("best.pt", "history.json", "history.csv", "training.png", "result.json")
 
 Transform = Callable[[torch.Tensor], torch.Tensor]
 
@@ -454,6 +464,39 @@ def _training_dir(kind: str, model: nn.Module, loss_fn: nn.Module, data_hash: st
     return cache_root() / "models" / f"{kind}-{key[:24]}"
 
 
+def _store_dir(directory: Path, profile: ReconstructionProfile) -> Path | None:
+    """Where the profile's ``model_store`` keeps the model trained in ``directory`` (None: no store)."""
+    return Path(profile.model_store) / Path(directory).name if profile.model_store else None
+
+
+def _published_result(model: nn.Module, directory: Path, profile: ReconstructionProfile,
+                      data_hash: str) -> TrainResult | None:
+    """The finished model of ``directory`` from the profile's ``model_store``, loaded into ``model``.
+
+    None when the profile has no store, the store has no finished copy of it, or the cache holds
+    a training of it (``checkpoint.pt``, which :func:`fit` resumes or returns). The copy must
+    be of the same architecture (:func:`load_checkpoint`) and data, else ValueError.
+    """
+    store = _store_dir(directory, profile)
+    if store is None or (Path(directory) / "checkpoint.pt").is_file() or not (store / "result.json").is_file():
+        return None
+    state = load_checkpoint(store / "best.pt", model)
+    if state["data_hash"] != data_hash:
+        raise ValueError(f"{store / 'best.pt'} was trained on data {state['data_hash'][:12]}, not {data_hash[:12]}")
+    model.eval()
+    return TrainResult(model, json.loads((store / "history.json").read_text()), int(state["epoch"]), store, data_hash)
+
+
+def _publish(result: TrainResult, profile: ReconstructionProfile) -> None:
+    """Copy a finished model's :data:`PUBLISHED_FILES` to the profile's ``model_store`` (atomically each)."""
+    store = _store_dir(result.directory, profile)
+    if store is None:
+        return
+    for name in PUBLISHED_FILES:
+        if (result.directory / name).is_file():
+            atomic_write_bytes(store / name, (result.directory / name).read_bytes())
+
+
 def denoiser_tensors(dataset_crops: dict[str, np.ndarray], auxiliary: tuple[str, ...] = ("albedo",),
                      encode: Transform | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """Network inputs and targets from crops of :func:`reconstruction.data.crops`.
@@ -483,6 +526,25 @@ def denoiser_tensors(dataset_crops: dict[str, np.ndarray], auxiliary: tuple[str,
     return torch.cat(planes, dim=1), encode(torch.from_numpy(dataset_crops["reference"]))
 
 
+def denoiser_data_hash(scene_names: list[str] | tuple[str, ...], profile: str | ReconstructionProfile = "quick",
+                      auxiliary: tuple[str, ...] = ("albedo",), progress: bool | None = None) -> str:
+    """Content key of the crops :func:`denoiser_data` draws: dataset keys and crop settings.
+
+    Generates (or finds) the datasets, but draws no crop.
+    """
+    from reconstruction.data import generate_dataset
+
+    profile = _resolve(profile)
+    if not scene_names:
+        raise ValueError("no scenes given")
+    keys = [generate_dataset(name, profile, progress).key for name in scene_names]
+    # only scenes with their own count add it: every other model keeps its key (and its cache)
+    own_counts = {name: profile.crops_for(name) for name in scene_names
+                  if profile.crops_for(name) != profile.crops_per_view}
+    return content_key("denoiser-data", keys, list(auxiliary), profile.crop_size, profile.crops_per_view,
+                       profile.seed, *([own_counts] if own_counts else []))
+
+
 def denoiser_data(scene_names: list[str] | tuple[str, ...], profile: str | ReconstructionProfile = "quick",
                   auxiliary: tuple[str, ...] = ("albedo",), encode: Transform | None = None,
                   progress: bool | None = None) -> tuple[dict[str, tuple[torch.Tensor, torch.Tensor]], str]:
@@ -493,25 +555,19 @@ def denoiser_data(scene_names: list[str] | tuple[str, ...], profile: str | Recon
     data : dict
         Split -> (inputs, targets), see :func:`denoiser_tensors`; crops of all scenes concatenated.
     data_hash : str
-        Content key of the dataset keys and crop settings.
+        :func:`denoiser_data_hash`.
     """
     from reconstruction.data import SPLITS, crops, generate_dataset
 
     profile = _resolve(profile)
-    if not scene_names:
-        raise ValueError("no scenes given")
-    datasets = [generate_dataset(name, profile, progress) for name in scene_names]
-    counts = [profile.crops_for(name) for name in scene_names]
+    data_hash = denoiser_data_hash(scene_names, profile, auxiliary, progress)
+    datasets = {name: generate_dataset(name, profile, progress) for name in scene_names}
     data = {}
     for split in SPLITS:
-        parts = [denoiser_tensors(crops(dataset, split, profile.crop_size, count, profile.seed), auxiliary, encode)
-                 for dataset, count in zip(datasets, counts, strict=True)]
+        parts = [denoiser_tensors(crops(dataset, split, profile.crop_size, profile.crops_for(name), profile.seed),
+                                  auxiliary, encode)
+                 for name, dataset in datasets.items()]
         data[split] = (torch.cat([p[0] for p in parts]), torch.cat([p[1] for p in parts]))
-    # only scenes with their own count add it: every other model keeps its key (and its cache)
-    own_counts = {name: count for name, count in zip(scene_names, counts, strict=True)
-                  if count != profile.crops_per_view}
-    data_hash = content_key("denoiser-data", [d.key for d in datasets], list(auxiliary), profile.crop_size,
-                            profile.crops_per_view, profile.seed, *([own_counts] if own_counts else []))
     return data, data_hash
 
 
@@ -555,12 +611,14 @@ def train_denoiser(scene_names: list[str] | tuple[str, ...], profile: str | Reco
     Returns
     -------
     TrainResult
-        Also writes ``result.json`` (test metrics of the kept weights, settings, provenance).
+        Also writes ``result.json`` (test metrics of the kept weights, settings, provenance) and
+        copies the model to the profile's ``model_store``. A model found there finished (and not in
+        the cache) is returned as it is, untrained, with the store's folder as its ``directory``.
     """
     from reconstruction.hdr import decode
 
     profile = _resolve(profile).denoiser
-    data, data_hash = denoiser_data(scene_names, profile, auxiliary, progress=progress)
+    data_hash = denoiser_data_hash(scene_names, profile, auxiliary, progress)
     if model is None:
         from reconstruction.models import Denoiser
 
@@ -575,12 +633,17 @@ def train_denoiser(scene_names: list[str] | tuple[str, ...], profile: str | Reco
     if directory is None:
         directory = _training_dir("denoiser", model, loss_fn, data_hash, profile, **schedule)
     directory = Path(directory)
+    published = _published_result(model, directory, profile, data_hash)
+    if published is not None:
+        return published  # its crops are not drawn: the mixed model's take about 10 GB
+    data = denoiser_data(scene_names, profile, auxiliary, progress=progress)[0]
     precision = resolve_precision(profile.precision)[0]
     result = fit(model, loss_fn, data, directory, data_hash, profile.epochs, profile.batch_size,
                  profile.denoiser_rate, profile.seed, decode, psnr, progress, precision, profile.patience,
                  warmup_steps, profile.denoiser_decay)
     _write_result(result, evaluate(result.model, data["test"], loss_fn, decode, psnr), list(scene_names), profile,
                   **schedule)
+    _publish(result, profile)
     return result
 
 
@@ -619,14 +682,13 @@ def train_superres(profile: str | ReconstructionProfile = "quick", scene_names: 
     -------
     TrainResult
         ``result.json`` holds the test metrics (renders) when scenes are given, and
-        those of the bicubic input for comparison.
+        those of the bicubic input for comparison; the profile's ``model_store`` as for
+        :func:`train_denoiser`.
     """
     from reconstruction.data import AUGMENT_EXPOSURE, AUGMENT_FACTOR, generate_dataset, superres_data
 
     profile = _resolve(profile)
     datasets = [generate_dataset(name, profile, progress) for name in scene_names]
-    pairs = superres_data(profile, datasets)
-    data = {split: superres_tensors(value) for split, value in pairs.items()}
     data_hash = content_key("superres-data", [d.key for d in datasets], profile.superres_crop_size,
                             profile.superres_crops_per_image, profile.superres_downsample, profile.seed,
                             *(["augmented", AUGMENT_FACTOR, AUGMENT_EXPOSURE] if profile.superres_augment else []))
@@ -641,6 +703,10 @@ def train_superres(profile: str | ReconstructionProfile = "quick", scene_names: 
         loss_fn = EdgeAwareLoss(SUPERRESOLUTION_SIGMA)
     directory = (_training_dir("superres", model, loss_fn, data_hash, profile, profile.learning_rate)
                  if directory is None else Path(directory))
+    published = _published_result(model, directory, profile, data_hash)
+    if published is not None:
+        return published
+    data = {split: superres_tensors(value) for split, value in superres_data(profile, datasets).items()}
     precision = resolve_precision(profile.precision)[0]
     result = fit(model, loss_fn, data, directory, data_hash, profile.epochs, profile.batch_size,
                  profile.learning_rate, profile.seed, _identity, psnr, progress, precision, profile.patience)
@@ -648,6 +714,7 @@ def train_superres(profile: str | ReconstructionProfile = "quick", scene_names: 
         metrics = evaluate(result.model, data["test"], loss_fn, _identity, psnr)
         metrics["bicubic"] = evaluate(nn.Identity(), data["test"], loss_fn, _identity, psnr)
         _write_result(result, metrics, list(scene_names), profile, profile.learning_rate)
+        _publish(result, profile)  # result.json marks a finished copy: without a test split nothing is stored
     return result
 
 

@@ -131,7 +131,8 @@ def _dataset_made(dataset) -> float:
 
 
 def _model_made(result) -> float:
-    return (result.directory / "checkpoint.pt").stat().st_mtime
+    # best.pt: written in the cache by every epoch that improved, and the file a stored model has
+    return (result.directory / "best.pt").stat().st_mtime
 
 
 def _training_seconds(result) -> float:

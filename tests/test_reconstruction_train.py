@@ -335,3 +335,34 @@ def test_denoiser_schedule_settings_default_to_the_constant_shared_rate_and_are_
                        ({"denoiser_learning_rate": 0.0}, "denoiser_learning_rate")):
         with pytest.raises(ValueError, match=match):
             dataclasses.replace(quick, **bad)
+
+
+def test_a_stored_model_is_reused_where_the_cache_lacks_it_and_checked(cache, tmp_path):
+    profile = dataclasses.replace(PROFILE, epochs=1, model_store=str(tmp_path / "store"))
+
+    def run(cache, loss_fn, model=None):
+        torch.manual_seed(profile.seed)
+        return train.train_denoiser([SCENE], profile, model=model or TinyDenoiser(), loss_fn=loss_fn,
+                                    directory=cache / "denoiser-key", psnr=_psnr, progress=False)
+
+    first = run(tmp_path / "machine-a", nn.MSELoss())
+    stored = tmp_path / "store" / "denoiser-key"
+    assert sorted(path.name for path in stored.iterdir()) == sorted(train.PUBLISHED_FILES)
+    assert json.loads((stored / "result.json").read_text()) == json.loads((first.directory / "result.json").read_text())
+    untrained = InterruptAfter(0)  # any training step raises
+    again = run(tmp_path / "machine-b", untrained)
+    assert untrained.calls == 0 and not (tmp_path / "machine-b").exists()
+    assert again.directory == stored and again.history == first.history and again.best_epoch == first.best_epoch
+    for name, value in first.model.state_dict().items():
+        torch.testing.assert_close(again.model.state_dict()[name], value)
+    assert not again.model.training
+    # the cache's own training wins over the store: it resumes (here: is finished) in place
+    assert run(tmp_path / "machine-a", InterruptAfter(0)).directory == tmp_path / "machine-a" / "denoiser-key"
+    with pytest.raises(ValueError, match="holds a TinyDenoiser"):
+        run(tmp_path / "machine-c", nn.MSELoss(), OtherTiny())
+    train.save_checkpoint(stored / "best.pt", TinyDenoiser(), "another-data-hash", epoch=1)
+    with pytest.raises(ValueError, match="trained on data another-da"):
+        run(tmp_path / "machine-c", nn.MSELoss())
+    (stored / "best.pt").write_bytes(b"truncated")
+    with pytest.raises(ValueError, match="not a readable checkpoint"):
+        run(tmp_path / "machine-c", nn.MSELoss())
