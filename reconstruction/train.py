@@ -488,9 +488,13 @@ def _published_result(model: nn.Module, directory: Path, profile: Reconstruction
 
 
 def _publish(result: TrainResult, profile: ReconstructionProfile) -> None:
-    """Copy a finished model's :data:`PUBLISHED_FILES` to the profile's ``model_store`` (atomically each)."""
+    """Copy a finished model's :data:`PUBLISHED_FILES` to the profile's ``model_store`` (atomically each).
+
+    Once: a stored copy is kept as it is, so reusing the cached model (whose ``result.json`` is
+    written again with a new provenance stamp) does not rewrite committed files.
+    """
     store = _store_dir(result.directory, profile)
-    if store is None:
+    if store is None or (store / "result.json").is_file():
         return
     for name in PUBLISHED_FILES:
         if (result.directory / name).is_file():

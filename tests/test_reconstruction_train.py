@@ -356,8 +356,11 @@ def test_a_stored_model_is_reused_where_the_cache_lacks_it_and_checked(cache, tm
     for name, value in first.model.state_dict().items():
         torch.testing.assert_close(again.model.state_dict()[name], value)
     assert not again.model.training
-    # the cache's own training wins over the store: it resumes (here: is finished) in place
+    # the cache's own training wins over the store: it resumes (here: is finished) in place, and
+    # the stored copy is not written again (result.json would get a new provenance stamp)
+    stamps = {path.name: path.stat().st_mtime_ns for path in stored.iterdir()}
     assert run(tmp_path / "machine-a", InterruptAfter(0)).directory == tmp_path / "machine-a" / "denoiser-key"
+    assert {path.name: path.stat().st_mtime_ns for path in stored.iterdir()} == stamps
     with pytest.raises(ValueError, match="holds a TinyDenoiser"):
         run(tmp_path / "machine-c", nn.MSELoss(), OtherTiny())
     train.save_checkpoint(stored / "best.pt", TinyDenoiser(), "another-data-hash", epoch=1)
