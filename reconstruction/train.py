@@ -530,23 +530,37 @@ def denoiser_tensors(dataset_crops: dict[str, np.ndarray], auxiliary: tuple[str,
     return torch.cat(planes, dim=1), encode(torch.from_numpy(dataset_crops["reference"]))
 
 
-def denoiser_data_hash(scene_names: list[str] | tuple[str, ...], profile: str | ReconstructionProfile = "quick",
-                      auxiliary: tuple[str, ...] = ("albedo",), progress: bool | None = None) -> str:
-    """Content key of the crops :func:`denoiser_data` draws: dataset keys and crop settings.
-
-    Generates (or finds) the datasets, but draws no crop.
-    """
+def _datasets(scene_names: list[str] | tuple[str, ...], profile: ReconstructionProfile,
+              progress: bool | None) -> dict:
+    """Scene name -> its dataset, generated or found (once per training: each call loads the scene)."""
     from reconstruction.data import generate_dataset
 
-    profile = _resolve(profile)
     if not scene_names:
         raise ValueError("no scenes given")
-    keys = [generate_dataset(name, profile, progress).key for name in scene_names]
+    return {name: generate_dataset(name, profile, progress) for name in scene_names}
+
+
+def _denoiser_data_hash(datasets: dict, profile: ReconstructionProfile, auxiliary: tuple[str, ...]) -> str:
+    """Content key of the crops :func:`_denoiser_crops` draws: dataset keys and crop settings."""
     # only scenes with their own count add it: every other model keeps its key (and its cache)
-    own_counts = {name: profile.crops_for(name) for name in scene_names
+    own_counts = {name: profile.crops_for(name) for name in datasets
                   if profile.crops_for(name) != profile.crops_per_view}
-    return content_key("denoiser-data", keys, list(auxiliary), profile.crop_size, profile.crops_per_view,
-                       profile.seed, *([own_counts] if own_counts else []))
+    return content_key("denoiser-data", [dataset.key for dataset in datasets.values()], list(auxiliary),
+                       profile.crop_size, profile.crops_per_view, profile.seed, *([own_counts] if own_counts else []))
+
+
+def _denoiser_crops(datasets: dict, profile: ReconstructionProfile, auxiliary: tuple[str, ...],
+                    encode: Transform | None = None) -> dict[str, tuple[torch.Tensor, torch.Tensor]]:
+    """Split -> (inputs, targets) over every dataset's crops, concatenated in scene order."""
+    from reconstruction.data import SPLITS, crops
+
+    data = {}
+    for split in SPLITS:
+        parts = [denoiser_tensors(crops(dataset, split, profile.crop_size, profile.crops_for(name), profile.seed),
+                                  auxiliary, encode)
+                 for name, dataset in datasets.items()]
+        data[split] = (torch.cat([p[0] for p in parts]), torch.cat([p[1] for p in parts]))
+    return data
 
 
 def denoiser_data(scene_names: list[str] | tuple[str, ...], profile: str | ReconstructionProfile = "quick",
@@ -559,20 +573,11 @@ def denoiser_data(scene_names: list[str] | tuple[str, ...], profile: str | Recon
     data : dict
         Split -> (inputs, targets), see :func:`denoiser_tensors`; crops of all scenes concatenated.
     data_hash : str
-        :func:`denoiser_data_hash`.
+        Content key of the dataset keys and crop settings.
     """
-    from reconstruction.data import SPLITS, crops, generate_dataset
-
     profile = _resolve(profile)
-    data_hash = denoiser_data_hash(scene_names, profile, auxiliary, progress)
-    datasets = {name: generate_dataset(name, profile, progress) for name in scene_names}
-    data = {}
-    for split in SPLITS:
-        parts = [denoiser_tensors(crops(dataset, split, profile.crop_size, profile.crops_for(name), profile.seed),
-                                  auxiliary, encode)
-                 for name, dataset in datasets.items()]
-        data[split] = (torch.cat([p[0] for p in parts]), torch.cat([p[1] for p in parts]))
-    return data, data_hash
+    datasets = _datasets(scene_names, profile, progress)
+    return _denoiser_crops(datasets, profile, auxiliary, encode), _denoiser_data_hash(datasets, profile, auxiliary)
 
 
 def train_denoiser(scene_names: list[str] | tuple[str, ...], profile: str | ReconstructionProfile = "quick",
@@ -622,7 +627,8 @@ def train_denoiser(scene_names: list[str] | tuple[str, ...], profile: str | Reco
     from reconstruction.hdr import decode
 
     profile = _resolve(profile).denoiser
-    data_hash = denoiser_data_hash(scene_names, profile, auxiliary, progress)
+    datasets = _datasets(scene_names, profile, progress)
+    data_hash = _denoiser_data_hash(datasets, profile, auxiliary)
     if model is None:
         from reconstruction.models import Denoiser
 
@@ -640,7 +646,7 @@ def train_denoiser(scene_names: list[str] | tuple[str, ...], profile: str | Reco
     published = _published_result(model, directory, profile, data_hash)
     if published is not None:
         return published  # its crops are not drawn: the mixed model's take about 10 GB
-    data = denoiser_data(scene_names, profile, auxiliary, progress=progress)[0]
+    data = _denoiser_crops(datasets, profile, auxiliary)
     precision = resolve_precision(profile.precision)[0]
     result = fit(model, loss_fn, data, directory, data_hash, profile.epochs, profile.batch_size,
                  profile.denoiser_rate, profile.seed, decode, psnr, progress, precision, profile.patience,
