@@ -206,3 +206,16 @@ def test_reference_noise_per_view_and_pooled():
     assert noise["lowest_psnr"] == pytest.approx(-10 * math.log10(0.04 / 4))
     assert noise["pooled_psnr"] == pytest.approx(-10 * math.log10(0.025 / 4))
     assert noise["lowest_psnr"] < noise["pooled_psnr"] < -10 * math.log10(0.01 / 4)
+    assert noise["psnrs"] == pytest.approx([-10 * math.log10(0.01 / 4), -10 * math.log10(0.04 / 4)])
+    assert noise["reference_spp"] == 12
+
+
+def test_the_per_view_margin_takes_each_views_best_method():
+    noise = {"psnrs": [40.0, 50.0, 45.0]}
+    ours, oidn, noisy = ({"per_image_psnr": values} for values in ([35.0, 47.0, 30.0], [36.0, 48.0, 41.0],
+                                                                  [20.0, 25.0, 22.0]))
+    # view by view: 40 - 36, 50 - 48, 45 - 41; without OIDN 40 - 35, 50 - 47, 45 - 30
+    assert rt._per_view_margin(noise, ours, oidn, noisy) == pytest.approx(2.0)
+    assert rt._per_view_margin(noise, ours, None, noisy) == pytest.approx(3.0)  # no OIDN on the row
+    assert rt._per_view_margin(noise, ours, {"psnr": 40.0}, noisy) is None  # measured before per-view lists
+    assert rt._per_view_margin({}, ours, oidn, noisy) is None
