@@ -286,6 +286,13 @@ class ReconstructionProfile:
         Scenes whose views give another number of denoiser crops than ``crops_per_view``, in
         every model that learns from them (their per-scene nets and the mixed model); kept as
         sorted (scene, count) pairs. Read it through :meth:`crops_for`.
+    test_reference_spp_by_scene : dict of str -> int
+        Scenes whose **test views** are scored against references of more samples per pixel
+        than ``reference_spp`` (:mod:`reconstruction.test_references`: the extra samples are
+        rendered with an independent seed and averaged in), because their reference noise
+        would otherwise move the PSNRs measured against them. Training and validation views,
+        the datasets' keys and every model's key are unchanged. Kept as sorted (scene, spp)
+        pairs; read it through :meth:`test_reference_spp`.
     validation_fraction, test_fraction : float
         Fractions of the accepted views held out for validation and test (split by view).
     epochs, batch_size : int
@@ -359,6 +366,7 @@ class ReconstructionProfile:
     crop_size: int = 128
     crops_per_view: int = 32
     crops_per_view_by_scene: tuple[tuple[str, int], ...] = ()
+    test_reference_spp_by_scene: tuple[tuple[str, int], ...] = ()
     validation_fraction: float = 0.15
     test_fraction: float = 0.15
     epochs: int = 100
@@ -389,6 +397,10 @@ class ReconstructionProfile:
         """Denoiser crops drawn per view of ``scene_name``."""
         return dict(self.crops_per_view_by_scene).get(scene_name, self.crops_per_view)
 
+    def test_reference_spp(self, scene_name: str) -> int:
+        """Samples per pixel of the references ``scene_name``'s test views are scored against."""
+        return dict(self.test_reference_spp_by_scene).get(scene_name, self.reference_spp)
+
     @property
     def denoiser(self) -> ReconstructionProfile:
         """This profile with a per-scene denoiser's epoch count as ``epochs``."""
@@ -400,11 +412,20 @@ class ReconstructionProfile:
         return dataclasses.replace(self, epochs=self.mixed_epochs or self.denoiser_epochs or self.epochs, denoiser_epochs=0,
                                    mixed_epochs=0)
 
-    def __post_init__(self) -> None:
-        by_scene = dict(self.crops_per_view_by_scene)  # a TOML table or the pairs
+    def _scene_counts(self, field: str, what: str) -> dict[str, int]:
+        """Check a scene -> count field (a TOML table or the pairs) and store it as sorted pairs."""
+        by_scene = dict(getattr(self, field))
         if not all(isinstance(name, str) and isinstance(count, int) for name, count in by_scene.items()):
-            raise ValueError("reconstruction.crops_per_view_by_scene maps scene names to crop counts")
-        object.__setattr__(self, "crops_per_view_by_scene", tuple(sorted(by_scene.items())))
+            raise ValueError(f"reconstruction.{field} maps scene names to {what}")
+        object.__setattr__(self, field, tuple(sorted(by_scene.items())))
+        return by_scene
+
+    def __post_init__(self) -> None:
+        by_scene = self._scene_counts("crops_per_view_by_scene", "crop counts")
+        test_spp = self._scene_counts("test_reference_spp_by_scene", "samples per pixel")
+        if any(spp < self.reference_spp for spp in test_spp.values()):
+            raise ValueError(f"reconstruction.test_reference_spp_by_scene must be >= reference_spp "
+                             f"({self.reference_spp}): a test reference is the dataset's plus more samples")
         counts = (self.positions, self.views_per_position, self.width, self.height, self.spp, self.reference_spp,
                   self.crop_size, self.crops_per_view, *by_scene.values(), self.epochs, self.batch_size, self.superres_crop_size,
                   self.superres_crops_per_image)

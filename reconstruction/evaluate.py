@@ -59,7 +59,8 @@ def pooled(predictions: Sequence[np.ndarray], references: Sequence[np.ndarray]) 
     dict
         ``rmse`` (over all values of all pairs), ``psnr`` (−20·log10 of it, ``inf`` if
         zero), ``psnr_mean`` (mean of the per-image PSNRs, each capped at 100 dB),
-        ``images`` and ``pixels`` (values counted / channels are not separated).
+        ``per_image_psnr`` (those PSNRs, in the order of the pairs), ``images`` and
+        ``pixels`` (values counted / channels are not separated).
     """
     if len(predictions) == 0 or len(predictions) != len(references):
         raise ValueError(f"need matching, non-empty image lists, got {len(predictions)} and {len(references)}")
@@ -77,7 +78,8 @@ def pooled(predictions: Sequence[np.ndarray], references: Sequence[np.ndarray]) 
         per_image.append(100.0 if mse == 0 else min(100.0, -10.0 * math.log10(mse)))
     rmse = math.sqrt(squared / count)
     return {"psnr": math.inf if rmse == 0 else -20.0 * math.log10(rmse), "rmse": rmse,
-            "psnr_mean": float(np.mean(per_image)), "images": len(per_image), "pixels": count}
+            "psnr_mean": float(np.mean(per_image)), "per_image_psnr": per_image, "images": len(per_image),
+            "pixels": count}
 
 
 def denoise_view(model: nn.Module, view: dict[str, np.ndarray], auxiliary: tuple[str, ...] = ("albedo",)) -> np.ndarray:

@@ -663,6 +663,19 @@ def measure_scene(name: str, config: Config, profile_name: str, models: Reconstr
     }
 
 
+#: Reconstruction profile fields the sweep's and §6.4's rows do not depend on: the datasets'
+#: refined test references (those rows have Mitsuba references of their own).
+ROW_INDEPENDENT_FIELDS = ("test_reference_spp_by_scene",)
+
+
+def row_settings(config: Config, profile: ProfileConfig, recon: ReconstructionProfile) -> list[dict]:
+    """The settings in a sweep or §6.4 row's key: the report, reconstruction, tree and render settings."""
+    recon_settings = {name: value for name, value in dataclasses.asdict(recon).items()
+                      if name not in ROW_INDEPENDENT_FIELDS}
+    return [dataclasses.asdict(profile), recon_settings, dataclasses.asdict(config.kdtree),
+            dataclasses.asdict(config.render)]
+
+
 def measure_plugin_scene(name: str, spec: str, config: Config, profile_name: str,
                          progress: tqdm | None = None) -> dict[str, Any]:
     """The plug-in denoiser ``spec`` after our path tracer at every ``sweep_spp`` on one scene.
@@ -727,8 +740,7 @@ def plugin_scene_rows(specs: Sequence[str], config: Config, profile_name: str, o
 
     profile = config.profile(profile_name)
     recon = config.reconstruction.profile(profile.reconstruction_profile)
-    settings = [dataclasses.asdict(profile), dataclasses.asdict(recon), dataclasses.asdict(config.kdtree),
-                dataclasses.asdict(config.render)]
+    settings = row_settings(config, profile, recon)
     pairs = [(spec, name) for spec in specs for name in profile.reconstruction_scenes]
     rows = []
     bar = tqdm(pairs, unit="row", desc=f"error_time plug-ins ({profile_name})", disable=not progress)
@@ -800,8 +812,7 @@ def scene_rows(kind: str, version: int, measure_scene: Callable[..., dict], conf
     profile = config.profile(profile_name)
     recon = config.reconstruction.profile(profile.reconstruction_profile)
     names = list(profile.reconstruction_scenes)
-    settings = [dataclasses.asdict(profile), dataclasses.asdict(recon), dataclasses.asdict(config.kdtree),
-                dataclasses.asdict(config.render)]
+    settings = row_settings(config, profile, recon)
     models: list[Reconstruction] = []
     rows = []
     bar = tqdm(names, unit="scene", desc=f"{kind} ({profile_name})", disable=not progress)

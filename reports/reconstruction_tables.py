@@ -37,6 +37,7 @@ cache; a rerun only evaluates.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import math
 import time
@@ -135,6 +136,10 @@ def _model_made(result) -> float:
     return (result.directory / "best.pt").stat().st_mtime
 
 
+def _references_made(refined) -> float:
+    return max(path.stat().st_mtime for path in refined.folder.glob("view-*.npz"))  # each written once, atomically
+
+
 def _training_seconds(result) -> float:
     return sum(epoch["seconds"] for epoch in result.history)
 
@@ -147,8 +152,11 @@ def reference_noise(dataset, split: str, spp: int, reference_spp: int) -> dict[s
     falls as 1/spp (the same integrator; our path tracer passes per-pixel Z-tests against
     Mitsuba), so ``MSE(noisy, reference) = v/spp + v/reference_spp`` and the reference's own
     squared error is that MSE times ``spp / (spp + reference_spp)``; clipped to [0, 1] as
-    every PSNR here. Returns the lowest and the median over the ``split`` views and the pooled
-    PSNR of all of them (from their mean squared error, as the tables' PSNRs are pooled), dB.
+    every PSNR here. ``reference_spp`` is that of the ``split``'s references (a refined test
+    split's, :meth:`reconstruction.test_references.RefinedDataset.reference_spp`). Returns each
+    view's PSNR (``psnrs``, in the order of ``dataset.views(split)``), the lowest and the median,
+    and the pooled PSNR of all of them (from their mean squared error, as the tables' PSNRs are
+    pooled), dB, with ``reference_spp``.
     """
     share = spp / (spp + reference_spp)
     errors = []
@@ -159,7 +167,8 @@ def reference_noise(dataset, split: str, spp: int, reference_spp: int) -> dict[s
         return math.inf if mse == 0 else -10.0 * math.log10(mse)
 
     values = [to_psnr(error) for error in errors]
-    return {"lowest_psnr": float(min(values)), "median_psnr": float(np.median(values)),
+    return {"psnrs": values, "reference_spp": reference_spp,
+            "lowest_psnr": float(min(values)), "median_psnr": float(np.median(values)),
             # every view has the same pixel count, so the pooled error is the views' mean
             "pooled_psnr": to_psnr(float(np.mean(errors))), "views": len(values)}
 
@@ -232,8 +241,10 @@ def _measure(config: Config, profile_name: str, fresh: bool, progress: bool,
     Returns the measurements (JSON-ready) and the objects the figures are drawn from
     (datasets, per-scene models, mixed model, superresolution model).
     """
+    from kdtrace.scenes import load_scene
     from reconstruction import evaluate, speed
     from reconstruction.data import TRAIN_PHOTOS, VALIDATION_PHOTOS, generate_dataset, photo
+    from reconstruction.test_references import refine_test_references
     from reconstruction.train import parameter_count, train_denoiser, train_superres
 
     profile = config.profile(profile_name)
@@ -247,7 +258,7 @@ def _measure(config: Config, profile_name: str, fresh: bool, progress: bool,
     stages: list[Stage] = []
     variants = {variant: list(getattr(profile, variant.scenes_field)) for variant in DENOISER_VARIANTS}
     steps = (len(scenes) + bool(unseen) + bool(far) + len(scenes) + sum(map(len, variants.values())) + 2
-             + 2 * len(scenes) + 1)
+             + 2 * len(scenes) + 1 + sum(recon.test_reference_spp(name) > recon.reference_spp for name in scenes))
     bar = tqdm(total=steps, unit="step", desc=f"reconstruction ({profile_name})", disable=not progress)
 
     def step(label: str) -> None:
@@ -287,6 +298,14 @@ def _measure(config: Config, profile_name: str, fresh: bool, progress: bool,
                           lambda: train_superres(recon, scenes, progress=False), _model_made, _training_seconds)
     bar.update()
 
+    for name in scenes:  # more reference samples for the test views of the scenes that need them, only
+        refine = functools.partial(refine_test_references, datasets[name], load_scene(name), recon, progress=False)
+        if recon.test_reference_spp(name) > recon.reference_spp:
+            step(f"test references {name}")
+            datasets[name] = _run_stage(stages, f"test references {name}", started, refine, _references_made)
+            bar.update()
+        else:
+            datasets[name] = refine()  # nothing rendered: the dataset's own references
     quality: dict[str, Any] = {}
     for name in scenes:
         step(f"quality {name}")
@@ -298,7 +317,7 @@ def _measure(config: Config, profile_name: str, fresh: bool, progress: bool,
             "mixed": {split: evaluate.denoiser_quality(mixed.model, dataset, split, with_oidn=False)["ours"]
                       for split in ("train", "validation", "test")},
             "superres": evaluate.superres_quality(superres.model, dataset, "test", recon.superres_downsample),
-            "reference_noise": reference_noise(dataset, "test", recon.spp, recon.reference_spp),
+            "reference_noise": reference_noise(dataset, "test", recon.spp, dataset.reference_spp("test")),
         }
         for variant, trained in variant_models.items():
             if name in trained:
@@ -392,6 +411,19 @@ def _reused(stages: list[dict], name: str) -> str:
     return "reused" if trained is None else f"reused (trained {trained:.0f} s)"
 
 
+def _per_view_margin(noise: dict, *results: dict | None) -> float | None:
+    """Smallest, over the test views, of a view's reference PSNR minus the best PSNR measured on it.
+
+    ``results`` are :func:`reconstruction.evaluate.pooled` results on the same views (the row's
+    model, OIDN, the noisy input; None: not measured). None when a per-view list is missing
+    (measurements made before they were kept).
+    """
+    lists = [result.get("per_image_psnr") for result in results if result is not None]
+    if not noise.get("psnrs") or not lists or any(values is None for values in lists):
+        return None
+    return min(reference - max(measured) for reference, *measured in zip(noise["psnrs"], *lists, strict=True))
+
+
 def _table2(m: dict) -> list[dict]:
     rows = []
     for name in m["scenes"]:
@@ -413,6 +445,9 @@ def _table2(m: dict) -> list[dict]:
                          "reference_margin_db": None if not noise else noise["lowest_psnr"] - best,
                          "reference_psnr_pooled": noise.get("pooled_psnr"),
                          "reference_margin_pooled_db": None if not noise else noise["pooled_psnr"] - best,
+                         "reference_margin_per_view_db": _per_view_margin(noise, metrics["test"], test.get("oidn"),
+                                                                          test["noisy"]),
+                         "test_reference_spp": noise.get("reference_spp"),
                          "test_views": q["views"]["test"],
                          "paper_test_psnr": paper.get("test_psnr") if model == "ours" else None,
                          "paper_test_rmse": paper.get("test_rmse") if model == "ours" else None,
@@ -425,6 +460,8 @@ def _table2(m: dict) -> list[dict]:
                          "test_rmse": variant["test"]["rmse"], "noisy_test_psnr": test["noisy"]["psnr"],
                          "gain_over_noisy": variant["test"]["psnr"] - test["noisy"]["psnr"], "oidn_test_psnr": oidn,
                          "minus_oidn": None if oidn is None else variant["test"]["psnr"] - oidn,
+                         "reference_margin_per_view_db": _per_view_margin(q.get("reference_noise", {}), variant["test"],
+                                                                          test.get("oidn"), test["noisy"]),
                          "test_views": q["views"]["test"],
                          "model_source": _reused(m["stages"], f"{kind.label} denoiser {name}")})
     from reconstruction.evaluate import combine
@@ -598,8 +635,11 @@ _TITLES = {
                "the same way. The references' own noise, as PSNRs estimated from the noisy input's error and the spp "
                "ratio: `reference_psnr_lowest` on the worst test view and `reference_psnr_pooled` over all of them; "
                "each `reference_margin` is that minus the best pooled PSNR of the row (ours, OIDN or noisy). The pooled "
-               "margin says how far reference noise can move the row's pooled PSNRs (6 dB: at most 1 dB); a single "
-               "view's own margin can be smaller (README)."),
+               "margin says how far reference noise can move the row's pooled PSNRs (6 dB: at most 1 dB). "
+               "`reference_margin_per_view_db`: the smallest, over the test views, of a view's own reference PSNR "
+               "minus the best PSNR of the row's model, OIDN and the noisy input on that view. `test_reference_spp`: "
+               "samples per pixel of the test views' references (the dataset's, or refined: "
+               "`reconstruction.test_references`, the profile's `test_reference_spp_by_scene`)."),
     "table3": ("Table 3 — the mixed model on each scene and on a scene it never saw",
                "`psnr_difference` = per-scene model minus mixed model on the same test views (positive: the "
                "per-scene model is better, as in the paper). The unseen scene is measured on all its views, none "

@@ -98,6 +98,20 @@ def test_two_workers_make_the_single_process_dataset_bit_for_bit(cluster, tmp_pa
     assert lost.is_file()
 
 
+def test_test_references_refined_on_two_workers_are_the_in_process_ones(cluster, tmp_path, monkeypatch):
+    from reconstruction.test_references import refine_test_references
+
+    tiny = dataclasses.replace(QUICK, width=32, height=32, reference_spp=16, test_reference_spp_by_scene={SCENE: 48})
+    scene = load_scene(SCENE)
+    single = _in_cache(tmp_path / "single", monkeypatch, lambda: refine_test_references(
+        data.generate_dataset(SCENE, tiny, progress=False), scene, tiny, progress=False))
+    spread = _in_cache(tmp_path / "dask", monkeypatch, lambda: refine_test_references(
+        data.generate_dataset(SCENE, tiny, progress=False), scene, tiny, progress=False, client=cluster))
+    assert spread.views("test") and spread.folder != single.folder
+    for name in spread.views("test"):
+        assert spread.load_view(name)["reference"].tobytes() == single.load_view(name)["reference"].tobytes()
+
+
 def test_two_clients_at_once_render_each_view_once(cluster, cache):
     from distributed import Client
 

@@ -131,6 +131,7 @@ width = 32
 height = 32
 spp = 2
 reference_spp = 8
+test_reference_spp_by_scene = { cbox-original = 16 }
 crop_size = 16
 crops_per_view = 4
 epochs = 2
@@ -158,13 +159,16 @@ def test_generate_end_to_end_and_reuse(tmp_path, monkeypatch, shared_scenes):
     second = time.perf_counter() - started
     print(f"\n[tiny] first run {first:.1f} s, rerun {second:.1f} s")
     table2 = (tmp_path / "out" / "table2.md").read_text()
-    assert "Reused from the cache: 9 of 9 datasets and models." in table2
+    assert "Reused from the cache: 10 of 10 datasets and models." in table2  # the refined test references too
     precision, why = resolve_precision(config.reconstruction.profile("tiny").precision)
     assert f"Training arithmetic on this machine: {why or precision}." in table2  # an fp32 fallback says why
     rows = pd.read_csv(tmp_path / "out" / "table2.csv").set_index(["scene", "model"])
     for scene, model in (("cbox-original", "per-scene +normal+depth"), ("cbox-sphere", "per-scene demodulated")):
         variant = rows.loc[(scene, model)]
         assert np.isfinite(variant["test_psnr"]) and variant["noisy_test_psnr"] > 0
+    assert rows.loc[("cbox-original", "per-scene"), "test_reference_spp"] == 16  # refined
+    assert rows.loc[("cbox-sphere", "per-scene"), "test_reference_spp"] == 8  # not needed, not rendered
+    assert np.isfinite(rows.loc[("cbox-original", "per-scene"), "reference_margin_per_view_db"])
     assert ("cbox-sphere", "per-scene +normal+depth") not in rows.index
     assert ("cbox-original", "per-scene demodulated") not in rows.index
     from reconstruction.models import Denoiser
@@ -206,3 +210,16 @@ def test_reference_noise_per_view_and_pooled():
     assert noise["lowest_psnr"] == pytest.approx(-10 * math.log10(0.04 / 4))
     assert noise["pooled_psnr"] == pytest.approx(-10 * math.log10(0.025 / 4))
     assert noise["lowest_psnr"] < noise["pooled_psnr"] < -10 * math.log10(0.01 / 4)
+    assert noise["psnrs"] == pytest.approx([-10 * math.log10(0.01 / 4), -10 * math.log10(0.04 / 4)])
+    assert noise["reference_spp"] == 12
+
+
+def test_the_per_view_margin_takes_each_views_best_method():
+    noise = {"psnrs": [40.0, 50.0, 45.0]}
+    ours, oidn, noisy = ({"per_image_psnr": values} for values in ([35.0, 47.0, 30.0], [36.0, 48.0, 41.0],
+                                                                  [20.0, 25.0, 22.0]))
+    # view by view: 40 - 36, 50 - 48, 45 - 41; without OIDN 40 - 35, 50 - 47, 45 - 30
+    assert rt._per_view_margin(noise, ours, oidn, noisy) == pytest.approx(2.0)
+    assert rt._per_view_margin(noise, ours, None, noisy) == pytest.approx(3.0)  # no OIDN on the row
+    assert rt._per_view_margin(noise, ours, {"psnr": 40.0}, noisy) is None  # measured before per-view lists
+    assert rt._per_view_margin({}, ours, oidn, noisy) is None
