@@ -264,48 +264,33 @@ def _measure(config: Config, profile_name: str, fresh: bool, progress: bool,
     def step(label: str) -> None:
         bar.set_postfix_str(label)
 
-    datasets = {}
-    for name in scenes + [n for n in (unseen, far) if n]:
-        step(f"dataset {name}")
-        datasets[name] = _run_stage(stages, f"dataset {name}", started,
-                                    lambda name=name: generate_dataset(name, recon, progress=False), _dataset_made)
+    def stage(label: str, work: Callable[[], Any], was_made: Callable[[Any], float] = _model_made,
+              training_seconds: Callable[[Any], float] | None = _training_seconds) -> Any:
+        """One dataset, model or refinement: named on the bar, timed and recorded in ``stages``."""
+        step(label)
+        result = _run_stage(stages, label, started, work, was_made, training_seconds)
         bar.update()
-    models = {}
-    for name in scenes:
-        step(f"denoiser {name}")
-        models[name] = _run_stage(stages, f"denoiser {name}", started,
-                                  lambda name=name: train_denoiser([name], recon, progress=False), _model_made, _training_seconds)
-        bar.update()
+        return result
+
+    datasets = {name: stage(f"dataset {name}", lambda name=name: generate_dataset(name, recon, progress=False),
+                            _dataset_made, None)
+                for name in scenes + [n for n in (unseen, far) if n]}
+    models = {name: stage(f"denoiser {name}", lambda name=name: train_denoiser([name], recon, progress=False))
+              for name in scenes}
     # the paper's models (per-scene, then mixed) before the documented variants: an interrupted
     # run has the measured objects first
-    step("mixed denoiser")
-    mixed = _run_stage(stages, "mixed denoiser", started, lambda: train_denoiser(scenes, recon.mixed, progress=False),
-                       _model_made, _training_seconds)
-    bar.update()
-    variant_models: dict[DenoiserVariant, dict[str, Any]] = {variant: {} for variant in DENOISER_VARIANTS}
-    for variant, names in variants.items():
-        for name in names:
-            step(f"{variant.label} denoiser {name}")
-            variant_models[variant][name] = _run_stage(
-                stages, f"{variant.label} denoiser {name}", started,
-                lambda name=name, variant=variant: train_denoiser(
-                    [name], recon, auxiliary=variant.auxiliary, demodulate=variant.demodulate, progress=False,
-                    warmup_steps=getattr(recon, variant.warmup_field) if variant.warmup_field else 0),
-                _model_made, _training_seconds)
-            bar.update()
-    step("superresolution")
-    superres = _run_stage(stages, "superresolution", started,
-                          lambda: train_superres(recon, scenes, progress=False), _model_made, _training_seconds)
-    bar.update()
-
+    mixed = stage("mixed denoiser", lambda: train_denoiser(scenes, recon.mixed, progress=False))
+    variant_models: dict[DenoiserVariant, dict[str, Any]] = {
+        variant: {name: stage(f"{variant.label} denoiser {name}", lambda name=name, variant=variant: train_denoiser(
+            [name], recon, auxiliary=variant.auxiliary, demodulate=variant.demodulate, progress=False,
+            warmup_steps=getattr(recon, variant.warmup_field) if variant.warmup_field else 0)) for name in names}
+        for variant, names in variants.items()}
+    superres = stage("superresolution", lambda: train_superres(recon, scenes, progress=False))
     for name in scenes:  # more reference samples for the test views of the scenes that need them, only
         refine = functools.partial(refine_test_references, datasets[name], load_scene(name), recon, progress=False)
-        if recon.test_reference_spp(name) > recon.reference_spp:
-            step(f"test references {name}")
-            datasets[name] = _run_stage(stages, f"test references {name}", started, refine, _references_made)
-            bar.update()
-        else:
-            datasets[name] = refine()  # nothing rendered: the dataset's own references
+        needed = recon.test_reference_spp(name) > recon.reference_spp
+        # nothing rendered where not needed: the dataset's own references
+        datasets[name] = stage(f"test references {name}", refine, _references_made, None) if needed else refine()
     quality: dict[str, Any] = {}
     for name in scenes:
         step(f"quality {name}")
