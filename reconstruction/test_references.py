@@ -37,7 +37,9 @@ from tqdm import tqdm
 from kdtrace.cache import content_key, load_npz, save_npz
 from kdtrace.config import DEFAULT_CONFIG, DistributedConfig, ReconstructionProfile
 from kdtrace.scene import Scene
-from reconstruction.data import Dataset, DatasetWriteError, check_writable, reference_variant, view_camera
+
+# _view_metadata reads a view file's record without its arrays: the resume checks need only the key
+from reconstruction.data import Dataset, DatasetWriteError, _view_metadata, check_writable, reference_variant, view_camera
 
 #: Bump when the refinement recipe changes (invalidates every refined reference).
 REFINEMENT_VERSION = 1
@@ -90,9 +92,9 @@ def refine_view(scene: Scene, profile: ReconstructionProfile, record: dict[str, 
     from references.mitsuba import render_reference
 
     path = Path(folder) / f"{record['name']}.npz"
-    stored = load_npz(path)
-    if stored is not None and stored[1].get("key") == key:
-        return stored[1]
+    metadata = _view_metadata(path)
+    if metadata is not None and metadata.get("key") == key:
+        return metadata
     extra = total_spp - profile.reference_spp
     seed = refinement_seed(int(record["reference_seed"]), total_spp)
     started = time.perf_counter()
@@ -226,11 +228,8 @@ def refine_test_references(dataset: Dataset, scene: Scene, profile: Reconstructi
     settings = config or DEFAULT_CONFIG.distributed
     variant = variant or settings.mitsuba_variant or None
     records = {record["name"]: record for record in dataset.manifest["views"]}
-    missing = []
-    for name in dataset.views("test"):
-        stored = load_npz(folder / f"{name}.npz")
-        if stored is None or stored[1].get("key") != key:
-            missing.append(name)
+    missing = [name for name in dataset.views("test")
+               if (_view_metadata(folder / f"{name}.npz") or {}).get("key") != key]
     if missing and (client is not None or workers is not None or scheduler or os.environ.get("KDTRACE_SCHEDULER")):
         from kdtrace.distributed import Unit, run_units
 
