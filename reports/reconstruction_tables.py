@@ -409,6 +409,28 @@ def _per_view_margin(noise: dict, *results: dict | None) -> float | None:
     return min(reference - max(measured) for reference, *measured in zip(noise["psnrs"], *lists, strict=True))
 
 
+def _test_columns(quality: dict, model_test: dict) -> dict:
+    """Table 2's test-view columns of one row: the model, the noisy input, OIDN and the references' noise.
+
+    ``quality`` is the scene's evaluation (``ours.test`` holds the noisy input's and OIDN's
+    results, ``reference_noise`` the references' own PSNRs, empty when not measured),
+    ``model_test`` the row model's pooled test result. Every reference margin is over the best
+    of the row's model, OIDN and the noisy input, so all rows of a scene are judged against the
+    same references.
+    """
+    test, noise = quality["ours"]["test"], quality.get("reference_noise", {})
+    psnr, noisy, oidn = model_test["psnr"], test["noisy"]["psnr"], test.get("oidn", {}).get("psnr")
+    best = max(p for p in (psnr, oidn, noisy) if p is not None)
+    return {"test_psnr": psnr, "test_rmse": model_test["rmse"], "noisy_test_psnr": noisy,
+            "gain_over_noisy": psnr - noisy, "oidn_test_psnr": oidn, "minus_oidn": None if oidn is None else psnr - oidn,
+            "reference_psnr_lowest": noise.get("lowest_psnr"),
+            "reference_margin_db": None if not noise else noise["lowest_psnr"] - best,
+            "reference_psnr_pooled": noise.get("pooled_psnr"),
+            "reference_margin_pooled_db": None if not noise else noise["pooled_psnr"] - best,
+            "reference_margin_per_view_db": _per_view_margin(noise, model_test, test.get("oidn"), test["noisy"]),
+            "test_reference_spp": noise.get("reference_spp")}
+
+
 def _table2(m: dict) -> list[dict]:
     rows = []
     for name in m["scenes"]:
@@ -416,37 +438,17 @@ def _table2(m: dict) -> list[dict]:
         for model in ("ours", "mixed"):
             metrics = {split: (q[model][split]["ours"] if model == "ours" else q[model][split])
                        for split in ("train", "validation", "test")}
-            test = q["ours"]["test"]
-            oidn = test.get("oidn", {}).get("psnr")
-            noise = q.get("reference_noise", {})
-            best = max(p for p in (metrics["test"]["psnr"], oidn, test["noisy"]["psnr"]) if p is not None)
             rows.append({"scene": name, "model": "per-scene" if model == "ours" else "mixed",
                          "train_psnr": metrics["train"]["psnr"], "validation_psnr": metrics["validation"]["psnr"],
-                         "test_psnr": metrics["test"]["psnr"], "test_rmse": metrics["test"]["rmse"],
-                         "noisy_test_psnr": test["noisy"]["psnr"],
-                         "gain_over_noisy": metrics["test"]["psnr"] - test["noisy"]["psnr"],
-                         "oidn_test_psnr": oidn, "minus_oidn": None if oidn is None else metrics["test"]["psnr"] - oidn,
-                         "reference_psnr_lowest": noise.get("lowest_psnr"),
-                         "reference_margin_db": None if not noise else noise["lowest_psnr"] - best,
-                         "reference_psnr_pooled": noise.get("pooled_psnr"),
-                         "reference_margin_pooled_db": None if not noise else noise["pooled_psnr"] - best,
-                         "reference_margin_per_view_db": _per_view_margin(noise, metrics["test"], test.get("oidn"),
-                                                                          test["noisy"]),
-                         "test_reference_spp": noise.get("reference_spp"),
+                         **_test_columns(q, metrics["test"]),
                          "test_views": q["views"]["test"],
                          "paper_test_psnr": paper.get("test_psnr") if model == "ours" else None,
                          "paper_test_rmse": paper.get("test_rmse") if model == "ours" else None,
                          "model_source": _reused(m["stages"], f"denoiser {name}" if model == "ours" else "mixed denoiser")})
         for kind in (v for v in DENOISER_VARIANTS if v.key in q):
-            variant, test = q[kind.key], q["ours"]["test"]
-            oidn = test.get("oidn", {}).get("psnr")
+            variant = q[kind.key]
             rows.append({"scene": name, "model": kind.row, "train_psnr": variant["train"]["psnr"],
-                         "validation_psnr": variant["validation"]["psnr"], "test_psnr": variant["test"]["psnr"],
-                         "test_rmse": variant["test"]["rmse"], "noisy_test_psnr": test["noisy"]["psnr"],
-                         "gain_over_noisy": variant["test"]["psnr"] - test["noisy"]["psnr"], "oidn_test_psnr": oidn,
-                         "minus_oidn": None if oidn is None else variant["test"]["psnr"] - oidn,
-                         "reference_margin_per_view_db": _per_view_margin(q.get("reference_noise", {}), variant["test"],
-                                                                          test.get("oidn"), test["noisy"]),
+                         "validation_psnr": variant["validation"]["psnr"], **_test_columns(q, variant["test"]),
                          "test_views": q["views"]["test"],
                          "model_source": _reused(m["stages"], f"{kind.label} denoiser {name}")})
     from reconstruction.evaluate import combine

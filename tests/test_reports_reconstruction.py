@@ -223,3 +223,21 @@ def test_the_per_view_margin_takes_each_views_best_method():
     assert rt._per_view_margin(noise, ours, None, noisy) == pytest.approx(3.0)  # no OIDN on the row
     assert rt._per_view_margin(noise, ours, {"psnr": 40.0}, noisy) is None  # measured before per-view lists
     assert rt._per_view_margin({}, ours, oidn, noisy) is None
+
+
+def test_every_table2_row_of_a_scene_gets_its_own_reference_margins():
+    # a variant row is judged against the same references as the per-scene row, with its own best
+    noise = {"psnrs": [50.0, 44.0], "lowest_psnr": 44.0, "pooled_psnr": 46.0, "reference_spp": 1024}
+    quality = {"ours": {"test": {"noisy": {"psnr": 30.0, "per_image_psnr": [31.0, 29.0]},
+                                 "oidn": {"psnr": 39.0, "per_image_psnr": [40.0, 38.0]}}},
+               "reference_noise": noise}
+    variant = {"psnr": 41.0, "rmse": 0.01, "per_image_psnr": [42.0, 39.5]}
+    columns = rt._test_columns(quality, variant)
+    assert columns["gain_over_noisy"] == pytest.approx(11.0) and columns["minus_oidn"] == pytest.approx(2.0)
+    assert columns["reference_margin_db"] == pytest.approx(3.0)  # 44 - max(41, 39, 30)
+    assert columns["reference_margin_pooled_db"] == pytest.approx(5.0)
+    assert columns["reference_margin_per_view_db"] == pytest.approx(4.5)  # min(50 - 42, 44 - 39.5)
+    assert columns["test_reference_spp"] == 1024
+    unmeasured = rt._test_columns({"ours": {"test": {"noisy": {"psnr": 30.0}}}}, variant)
+    assert unmeasured["oidn_test_psnr"] is None and unmeasured["reference_margin_db"] is None
+    assert unmeasured["test_reference_spp"] is None
