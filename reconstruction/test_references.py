@@ -37,8 +37,6 @@ from tqdm import tqdm
 from kdtrace.cache import content_key, load_npz, save_npz
 from kdtrace.config import DEFAULT_CONFIG, DistributedConfig, ReconstructionProfile
 from kdtrace.scene import Scene
-
-# _view_metadata reads a view file's record without its arrays: the resume checks need only the key
 from reconstruction.data import Dataset, DatasetWriteError, _view_metadata, check_writable, reference_variant, view_camera
 
 #: Bump when the refinement recipe changes (invalidates every refined reference).
@@ -58,6 +56,15 @@ def refinement_key(dataset_key: str, total_spp: int) -> str:
 def refinement_dir(dataset: Dataset, total_spp: int) -> Path:
     """Folder of ``dataset``'s test references refined to ``total_spp`` samples per pixel."""
     return dataset.root / f"test-references-{total_spp}spp"
+
+
+def _current_metadata(path: Path, key: str) -> dict[str, Any] | None:
+    """The record of the refined view at ``path`` if it holds ``key``; None if missing, corrupt or stale.
+
+    Reads the record only (``data._view_metadata``), not the arrays: the resume checks need the key.
+    """
+    metadata = _view_metadata(path)
+    return metadata if metadata is not None and metadata.get("key") == key else None
 
 
 def refine_view(scene: Scene, profile: ReconstructionProfile, record: dict[str, Any], base_reference: np.ndarray,
@@ -92,8 +99,8 @@ def refine_view(scene: Scene, profile: ReconstructionProfile, record: dict[str, 
     from references.mitsuba import render_reference
 
     path = Path(folder) / f"{record['name']}.npz"
-    metadata = _view_metadata(path)
-    if metadata is not None and metadata.get("key") == key:
+    metadata = _current_metadata(path, key)
+    if metadata is not None:
         return metadata
     extra = total_spp - profile.reference_spp
     seed = refinement_seed(int(record["reference_seed"]), total_spp)
@@ -228,8 +235,7 @@ def refine_test_references(dataset: Dataset, scene: Scene, profile: Reconstructi
     settings = config or DEFAULT_CONFIG.distributed
     variant = variant or settings.mitsuba_variant or None
     records = {record["name"]: record for record in dataset.manifest["views"]}
-    missing = [name for name in dataset.views("test")
-               if (_view_metadata(folder / f"{name}.npz") or {}).get("key") != key]
+    missing = [name for name in dataset.views("test") if _current_metadata(folder / f"{name}.npz", key) is None]
     if missing and (client is not None or workers is not None or scheduler or os.environ.get("KDTRACE_SCHEDULER")):
         from kdtrace.distributed import Unit, run_units
 
