@@ -162,7 +162,7 @@ def _gate(args, config) -> int:
     from reports.gate import run_gate
 
     out_dir = Path(args.out) if args.out else REPOSITORY / "reports" / args.profile
-    passed, text = run_gate(out_dir, args.profile, config.gate, baseline=args.baseline)
+    passed, text = run_gate(out_dir, args.profile, config.gate, directory=args.baselines)
     print(text)
     return 0 if passed else 1
 
@@ -171,8 +171,8 @@ def _update_baseline(args, config) -> int:
     from reports.gate import update_baseline
 
     out_dir = Path(args.out) if args.out else REPOSITORY / "reports" / args.profile
-    path, note = update_baseline(out_dir, args.profile, baseline=args.baseline)
-    print(f"{note}; review with `git diff {path}`")
+    paths, note = update_baseline(out_dir, args.profile, directory=args.baselines)
+    print(f"{note}; review with `git diff {' '.join(map(str, paths))}`")
     return 0
 
 
@@ -258,7 +258,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "reconstruction, error_time, combined, scaleout)")
     report.add_argument("--out", help="output folder (default reports/PROFILE)")
     report.add_argument("--fresh", action="store_true", help="measure everything again instead of reusing results")
-    report.add_argument("--gate", action="store_true", help="then compare with reports/baseline/PROFILE.json; exit 1 on a regression")
+    report.add_argument("--gate", action="store_true", help="then compare with the committed baselines; exit 1 on a regression")
     report.add_argument("--scheduler", help="address of a running Dask scheduler: Table 1 rows and dataset views "
                         "become units of work on its workers (default $KDTRACE_SCHEDULER, else all in this process)")
     report.add_argument("--accelerator", action="append", metavar="NAME",
@@ -274,7 +274,9 @@ def build_parser() -> argparse.ArgumentParser:
         parser_ = sub.add_parser(command, help=what)
         parser_.add_argument("--profile", default="quick", help="profile name (selects reports/PROFILE and the baseline)")
         parser_.add_argument("--out", help="report folder of the run (default reports/PROFILE)")
-        parser_.add_argument("--baseline", help="baseline file (default reports/baseline/PROFILE.json)")
+        parser_.add_argument("--baselines", metavar="DIR",
+                             help="folder of the baselines PROFILE.json and PROFILE.ratios.KIND.json "
+                                  "(default reports/baseline)")
         parser_.set_defaults(run=run)
     return parser
 

@@ -344,7 +344,7 @@ class ReconstructionProfile:
         Linear learning-rate warm-up, in Adam steps, of every denoiser (0: none); a variant with
         a longer warm-up of its own (``normal_depth_warmup_steps``) keeps the longer one.
     model_store : str
-        Folder, relative to the working directory, where each finished model is copied
+        Folder, relative to the repository, where each finished model is copied
         (``<model_store>/<kind>-<key>``: kept weights, history, plot, ``result.json``) and found
         again by a machine whose cache lacks it (:mod:`reconstruction.train`); "" for none.
         Not part of any cache key.

@@ -20,12 +20,15 @@ the mixed model), :func:`train_superres`, :func:`evaluate`. The training folder 
 ``cache_root()/models/<kind>-<key>`` where the key hashes the architecture, the loss, the data
 hash and the optimisation settings (not the epoch count, so raising ``epochs`` resumes).
 
-A profile with a ``model_store`` (``standard``) also copies each finished model's kept weights,
-history, plot and ``result.json`` to ``<model_store>/<kind>-<key>``, a folder meant to be
-committed: a machine whose cache lacks the training then reuses that model instead of training
-it again (:func:`_published_result`; the cache's own checkpoint, when there is one, wins).
-Only finished models are copied, so a training interrupted on a machine that is then lost
-restarts from its first epoch.
+A profile with a ``model_store`` (``quick`` and ``standard``) also copies each finished model's
+kept weights, history, plot and ``result.json`` to ``<model_store>/<kind>-<key>``, a folder
+meant to be committed: every machine then evaluates that model instead of training it again
+(:func:`_published_result`). The stored copy wins over the cache, so a PSNR measured with a
+committed network is a measurement of the same weights on every machine kind. The training
+arithmetic (fp32 or bf16, :func:`resolve_precision`) is recorded in ``result.json`` as
+provenance and is not part of the key: a network trained in bf16 on one machine is found and
+used on a machine that would train in fp32. Only finished models are copied, so a training
+interrupted on a machine that is then lost restarts from its first epoch.
 """
 
 from __future__ import annotations
@@ -52,6 +55,8 @@ from kdtrace.cache import atomic_write, atomic_write_bytes, cache_root, content_
 from kdtrace.config import DECAYS, DEFAULT_CONFIG, ReconstructionProfile
 from kdtrace.provenance import stamp
 
+#: The checkout holding ``kdtrace`` and ``reconstruction``: relative model stores are found here.
+REPOSITORY = Path(__file__).resolve().parents[1]
 #: Identifies our checkpoint files; bump the version when their layout changes.
 CHECKPOINT_FORMAT = "kdtrace-reconstruction-checkpoint"
 CHECKPOINT_VERSION = 1
@@ -452,33 +457,38 @@ def _training_dir(kind: str, model: nn.Module, loss_fn: nn.Module, data_hash: st
                   decay: str = "constant") -> Path:
     # the loss is part of the identity: the same net and data trained on another loss is another model
     loss = getattr(loss_fn, "config", None) or type(loss_fn).__name__
-    # fp32 runs keep their pre-precision keys (their caches stay valid); bf16 is another model
-    precision = resolve_precision(profile.precision)[0]
+    # the training arithmetic is provenance, not identity: a committed network must be found on
+    # every machine kind, whichever precision that machine would train in
     # warm-up and decay enter only when used (earlier models keep their keys); a decay's schedule
     # depends on the epoch count, so with one raising `epochs` is another model, not a resume
     key = content_key(kind, architecture(model), parameter_count(model), loss, data_hash, profile.batch_size,
                       learning_rate, profile.seed,
-                      *(["bf16"] if precision == "bf16" else []),
                       *(["warmup", warmup_steps] if warmup_steps else []),
                       *(["decay", decay, profile.epochs] if decay != "constant" else []))
     return cache_root() / "models" / f"{kind}-{key[:24]}"
 
 
 def _store_dir(directory: Path, profile: ReconstructionProfile) -> Path | None:
-    """Where the profile's ``model_store`` keeps the model trained in ``directory`` (None: no store)."""
-    return Path(profile.model_store) / Path(directory).name if profile.model_store else None
+    """Where the profile's ``model_store`` keeps the model trained in ``directory`` (None: no store).
+
+    A relative ``model_store`` is relative to the repository (so that the committed networks are
+    found whatever the working directory).
+    """
+    if not profile.model_store:
+        return None
+    return REPOSITORY / profile.model_store / Path(directory).name
 
 
 def _published_result(model: nn.Module, directory: Path, profile: ReconstructionProfile,
                       data_hash: str) -> TrainResult | None:
     """The finished model of ``directory`` from the profile's ``model_store``, loaded into ``model``.
 
-    None when the profile has no store, the store has no finished copy of it, or the cache holds
-    a training of it (``checkpoint.pt``, which :func:`fit` resumes or returns). The copy must
-    be of the same architecture (:func:`load_checkpoint`) and data, else ValueError.
+    None when the profile has no store or the store has no finished copy of it. The stored copy
+    wins over a training of the same key in the cache. It must be of the same architecture
+    (:func:`load_checkpoint`) and data, else ValueError.
     """
     store = _store_dir(directory, profile)
-    if store is None or (Path(directory) / "checkpoint.pt").is_file() or not (store / "result.json").is_file():
+    if store is None or not (store / "result.json").is_file():
         return None
     state = load_checkpoint(store / "best.pt", model)
     if state["data_hash"] != data_hash:

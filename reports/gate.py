@@ -1,4 +1,4 @@
-"""The CI regression gate: a run's gated metrics against the baseline committed in the repository.
+"""The CI regression gate: a run's gated metrics against the baselines committed in the repository.
 
 How to use::
 
@@ -7,8 +7,7 @@ How to use::
     kdtrace update-baseline [--profile quick]   # accept the latest run as the new baseline
 
 A run's metrics are the files ``reports/PROFILE/metrics/*.json`` written by the report
-parts (:mod:`reports.metrics`); the baseline is ``reports/baseline/PROFILE.json``. Each
-metric is compared by its kind:
+parts (:mod:`reports.metrics`). Each metric is compared by its kind:
 
 ========  ==========================================================================
 kind      fails when
@@ -20,26 +19,28 @@ psnr      it dropped by more than ``[gate] psnr_tolerance_db`` below the baselin
 ratio     it dropped below ``baseline * (1 - tolerance)``, the tolerance from ``[gate]``
 ========  ==========================================================================
 
+Two kinds of baseline, in ``reports/baseline/``:
+
+``PROFILE.json``
+    Everything that does not depend on the machine: counts, zeros, passes and the PSNRs of
+    the committed networks (``models/PROFILE``, evaluated, never retrained by a run). One
+    file that every machine kind reads, so a deterministic number can never go stale on a
+    kind nobody ran on.
+``PROFILE.ratios.SLUG.json``
+    Speed ratios measured within one run (ours / Embree, ours / Mitsuba, ...), which do
+    depend on the machine: one file per machine kind (:func:`kdtrace.provenance.cpu_kind`,
+    ``SLUG`` by :func:`cpu_slug`). On a kind with no such file the ratios are listed as
+    "not gated" with the reason; they neither pass nor fail.
+
 A metric in the baseline but not in the run fails ("missing from run"): a part that
 stopped reporting something must say so by updating the baseline. A metric in the run
 but not in the baseline is listed as "new" and does not fail, so a new report part can
-land before its baseline. A metric whose kind changed fails. Absolute seconds are never
-gated: only ratios measured within one run.
+land before its baseline. A metric whose kind changed fails, naming both kinds. Absolute
+seconds are never gated: only ratios measured within one run.
 
-The baseline file is sorted, indented JSON of ``{"cpu": ..., "profile": ..., "metrics":
-{name: {"kind", "value", "note"}}}`` with ratios rounded to 4 significant digits, so that
-its diff after ``kdtrace update-baseline`` shows exactly what changed.
-
-One baseline per machine kind (:func:`kdtrace.provenance.cpu_kind`: CPU model and vector
-tier). Training the networks with fixed seeds reproduces its PSNRs on one kind (within
-0.005 dB on an Intel Xeon), not across kinds: an AMD EPYC run of the same commit, with
-bit-identical renders, trained to PSNRs 3.5 dB lower to 0.6 dB higher than the Xeon
-baseline (2026-12-01), and "AMD EPYC" VMs come with AVX-512 and bf16 or with AVX2 only
-(fp32 training, other Embree kernels). So ``reports/baseline/PROFILE.SLUG.json``, recorded
-on the kind whose name gives ``SLUG`` (:func:`cpu_slug`), is used when it exists for the
-machine, and ``PROFILE.json`` (whose ``cpu`` says where it was recorded) otherwise;
-``update-baseline`` writes the machine's own file when ``PROFILE.json`` was recorded on
-another kind.
+The baseline files are sorted, indented JSON of ``{"profile": ..., "metrics": {name:
+{"kind", "value", "note"}}}`` (a ratio file also names its ``cpu``) with values rounded to 4
+significant digits, so that a diff after ``kdtrace update-baseline`` shows exactly what changed.
 """
 
 from __future__ import annotations
@@ -62,8 +63,11 @@ from reports.metrics import Metric, read_metrics
 #: Where the committed baselines live, one ``PROFILE.json`` each.
 BASELINE_DIR = Path(__file__).resolve().with_name("baseline")
 #: Verdicts, in the order the table lists them.
-FAIL, MISSING, NEW, OK = "FAIL", "FAIL: missing from run", "new (not in baseline)", "ok"
-_ORDER = {FAIL: 0, MISSING: 1, NEW: 2, OK: 3}
+FAIL, MISSING, NEW, NOT_GATED, OK = ("FAIL", "FAIL: missing from run", "new (not in baseline)",
+                                     "not gated", "ok")
+_ORDER = {FAIL: 0, MISSING: 1, NEW: 2, NOT_GATED: 3, OK: 4}
+#: Metric kinds whose values depend on the machine: their baselines are kept per machine kind.
+MACHINE_DEPENDENT = frozenset({"ratio"})
 #: Significant digits of floating-point values stored in a baseline.
 BASELINE_DIGITS = 4
 
@@ -133,58 +137,84 @@ def cpu_slug(cpu: str) -> str:
     return re.sub(r"[^a-z0-9]+", "-", cpu.lower()).strip("-")
 
 
-def baseline_path(profile_name: str, directory: Path | None = None, cpu: str | None = None) -> Path:
-    """The committed baseline of a profile (in :data:`BASELINE_DIR` unless ``directory`` is given).
+def baseline_path(profile_name: str, directory: Path | None = None) -> Path:
+    """The profile's machine-independent baseline, ``PROFILE.json`` (in :data:`BASELINE_DIR` by default)."""
+    return Path(BASELINE_DIR if directory is None else directory) / f"{profile_name}.json"
 
-    With ``cpu``, the baseline recorded on that CPU model (``PROFILE.SLUG.json``) when it
-    exists, else the profile's general one (``PROFILE.json``).
-    """
+
+def ratio_baseline_path(profile_name: str, cpu: str, directory: Path | None = None) -> Path:
+    """The profile's speed ratios recorded on machine kind ``cpu``, ``PROFILE.ratios.SLUG.json``."""
+    return Path(BASELINE_DIR if directory is None else directory) / f"{profile_name}.ratios.{cpu_slug(cpu)}.json"
+
+
+def recorded_kinds(profile_name: str, directory: Path | None = None) -> list[str]:
+    """The machine kinds with a speed-ratio baseline of the profile (as their files name them)."""
     directory = Path(BASELINE_DIR if directory is None else directory)
-    if cpu is not None:
-        specific = directory / f"{profile_name}.{cpu_slug(cpu)}.json"
-        if specific.exists():
-            return specific
-    return directory / f"{profile_name}.json"
+    kinds = []
+    for path in sorted(directory.glob(f"{profile_name}.ratios.*.json")):
+        try:
+            kinds.append(str(json.loads(path.read_text()).get("cpu", path.name)))
+        except (json.JSONDecodeError, AttributeError, OSError):
+            kinds.append(f"{path.name} (unreadable)")
+    return kinds
+
+
+def _document(path: Path) -> dict:
+    if not path.exists():
+        raise FileNotFoundError(f"no baseline {path}; create it from a run with `kdtrace update-baseline`")
+    try:
+        document = json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as error:
+        raise ValueError(f"baseline {path} is not valid JSON ({error})") from error
+    except OSError as error:
+        raise ValueError(f"baseline {path} cannot be read ({error})") from error
+    if not isinstance(document, dict) or not isinstance(document.get("metrics"), dict):
+        raise ValueError(f"baseline {path}: expected an object with a 'metrics' object")
+    return document
 
 
 def baseline_cpu(path: str | Path) -> str | None:
-    """The CPU model a baseline file was recorded on (None when it does not say or does not exist)."""
-    path = Path(path)
-    if not path.exists():
-        return None
-    try:
-        return json.loads(path.read_text()).get("cpu")
-    except (json.JSONDecodeError, AttributeError):
-        return None
+    """The machine kind a speed-ratio baseline was recorded on (None when it does not say)."""
+    return _document(Path(path)).get("cpu")
 
 
-def read_baseline(path: str | Path) -> dict[str, Metric]:
+def read_baseline(path: str | Path, profile_name: str | None = None,
+                  machine_dependent: bool | None = None) -> dict[str, Metric]:
     """Read a baseline written by :func:`write_baseline`, validating every entry.
+
+    Parameters
+    ----------
+    path : str or Path
+    profile_name : str, optional
+        When given, the file must have been recorded for this profile.
+    machine_dependent : bool, optional
+        True: the file must hold only :data:`MACHINE_DEPENDENT` kinds (a per-kind ratio file);
+        False: none of them (the shared file). None: not checked.
 
     Raises
     ------
     FileNotFoundError
         When there is no baseline (create it with ``kdtrace update-baseline``).
     ValueError
-        When the file is not a baseline (bad JSON, wrong layout, unknown kind, bad value).
+        When the file is not a baseline (unreadable, bad JSON, wrong layout, unknown kind, bad
+        value), was recorded for another profile, or holds a kind that belongs in the other file.
     """
     path = Path(path)
-    if not path.exists():
-        raise FileNotFoundError(f"no baseline {path}; create it from a run with `kdtrace update-baseline`")
-    try:
-        document = json.loads(path.read_text())
-    except json.JSONDecodeError as error:
-        raise ValueError(f"baseline {path} is not valid JSON ({error})") from error
-    if not isinstance(document, dict) or not isinstance(document.get("metrics"), dict):
-        raise ValueError(f"baseline {path}: expected an object with a 'metrics' object")
+    document = _document(path)
+    if profile_name is not None and document.get("profile") != profile_name:
+        raise ValueError(f"baseline {path} was recorded for profile {document.get('profile')!r}, not {profile_name!r}")
     metrics = []
     for name, entry in document["metrics"].items():
         if not isinstance(entry, dict) or set(entry) - {"kind", "value", "note"} or not {"kind", "value"} <= set(entry):
             raise ValueError(f"baseline {path}: metric {name!r} needs exactly 'kind', 'value' (and optionally 'note')")
         try:
-            metrics.append(Metric(name=name, **entry))
+            metric = Metric(name=name, **entry)
         except (TypeError, ValueError) as error:
             raise ValueError(f"baseline {path}: {error}") from error
+        if machine_dependent is not None and (metric.kind in MACHINE_DEPENDENT) != machine_dependent:
+            where = "a per-machine-kind ratio file" if machine_dependent else "the machine-independent baseline"
+            raise ValueError(f"baseline {path}: metric {name!r} of kind {metric.kind!r} does not belong in {where}")
+        metrics.append(metric)
     return _by_name(metrics, str(path))
 
 
@@ -232,7 +262,7 @@ def _compare_one(name: str, before: Metric, now: Metric, config: GateConfig) -> 
 
 
 def compare(baseline: dict[str, Metric], run: dict[str, Metric], config: GateConfig,
-            skip: Iterable[str] = ()) -> list[Verdict]:
+            skip: Iterable[str] = (), not_gated: str = "") -> list[Verdict]:
     """Compare a run with the baseline, metric by metric (rules in the module docstring).
 
     Parameters
@@ -243,6 +273,9 @@ def compare(baseline: dict[str, Metric], run: dict[str, Metric], config: GateCon
     skip : iterable of str
         ``fnmatch`` patterns of baseline metrics not expected in this run (e.g. the
         scenes left out by ``--scenes``); they are neither compared nor missing.
+    not_gated : str
+        When not empty, the reason the run's :data:`MACHINE_DEPENDENT` metrics cannot be gated
+        (no ratio baseline for this machine kind): they are listed as :data:`NOT_GATED`.
 
     Returns
     -------
@@ -258,9 +291,13 @@ def compare(baseline: dict[str, Metric], run: dict[str, Metric], config: GateCon
             verdicts.append(Verdict(name, before.kind, before.value, None, "present", MISSING,
                                     "in the baseline but not reported by this run"))
     for name, now in run.items():
-        if name not in baseline:
-            absolute = _absolute_verdict(now)
-            verdicts.append(absolute if absolute.failed else Verdict(name, now.kind, None, now.value, "-", NEW))
+        if name in baseline:
+            continue
+        if not_gated and now.kind in MACHINE_DEPENDENT:
+            verdicts.append(Verdict(name, now.kind, None, now.value, "-", NOT_GATED, not_gated))
+            continue
+        absolute = _absolute_verdict(now)
+        verdicts.append(absolute if absolute.failed else Verdict(name, now.kind, None, now.value, "-", NEW))
     return sorted(verdicts, key=lambda v: (_ORDER[v.verdict], v.name))
 
 
@@ -302,22 +339,57 @@ def summary(verdicts: list[Verdict]) -> str:
     counts = {label: sum(v.verdict == label for v in verdicts) for label in _ORDER}
     failed = counts[FAIL] + counts[MISSING]
     return (f"gate {'FAILED' if failed else 'PASSED'}: {counts[OK]} ok, {counts[FAIL]} failed, "
-            f"{counts[MISSING]} missing from the run, {counts[NEW]} new (not in the baseline)")
+            f"{counts[MISSING]} missing from the run, {counts[NEW]} new (not in the baseline), "
+            f"{counts[NOT_GATED]} not gated")
 
 
-def run_gate(out_dir: str | Path, profile_name: str, config: GateConfig, baseline: str | Path | None = None,
+def _shown(path: Path) -> str:
+    """A baseline's path as the gate's page shows it: relative to the repository when inside it."""
+    try:
+        return str(path.resolve().relative_to(BASELINE_DIR.parents[1]))
+    except ValueError:
+        return path.name
+
+
+def read_baselines(profile_name: str, directory: Path | None = None,
+                   cpu: str | None = None) -> tuple[dict[str, Metric], str]:
+    """The merged baseline for this machine: the shared file's metrics and this kind's ratios.
+
+    Returns
+    -------
+    metrics : dict of name -> Metric
+    ratios : str
+        Which speed-ratio baseline was used, or why the ratios are not gated (then the
+        ``metrics`` hold no ratio and :func:`compare` is given this text as ``not_gated``).
+    """
+    cpu = cpu_kind() if cpu is None else cpu
+    metrics = read_baseline(baseline_path(profile_name, directory), profile_name, machine_dependent=False)
+    ratio_path = ratio_baseline_path(profile_name, cpu, directory)
+    if not ratio_path.exists():
+        others = ", ".join(recorded_kinds(profile_name, directory)) or "none"
+        return metrics, (f"no speed-ratio baseline for this machine kind ({cpu}): {_shown(ratio_path)} does not exist "
+                         f"(kinds with one: {others}); record it with `kdtrace update-baseline` after a run on an idle "
+                         f"machine of this kind")
+    ratios = read_baseline(ratio_path, profile_name, machine_dependent=True)
+    recorded = baseline_cpu(ratio_path)
+    if recorded != cpu:
+        raise ValueError(f"baseline {ratio_path} was recorded on {recorded!r}, not on this machine kind {cpu!r}")
+    return {**metrics, **ratios}, ""
+
+
+def run_gate(out_dir: str | Path, profile_name: str, config: GateConfig, directory: str | Path | None = None,
              skip: Iterable[str] = ()) -> tuple[bool, str]:
-    """Gate the run in ``out_dir`` against the profile's baseline and write ``out_dir/gate.md``.
+    """Gate the run in ``out_dir`` against the profile's baselines and write ``out_dir/gate.md``.
 
     Parameters
     ----------
     out_dir : str or Path
         The report folder (holding ``metrics/*.json``).
     profile_name : str
-        Selects ``reports/baseline/PROFILE.json`` unless ``baseline`` is given.
+        Selects ``PROFILE.json`` and this machine kind's ``PROFILE.ratios.SLUG.json``.
     config : GateConfig
-    baseline : str or Path, optional
-        Another baseline file (default: :func:`baseline_path` for this machine's CPU model).
+    directory : str or Path, optional
+        Folder of the baselines (default :data:`BASELINE_DIR`).
     skip : iterable of str
         Baseline metric patterns not expected in this run (see :func:`compare`).
 
@@ -326,49 +398,58 @@ def run_gate(out_dir: str | Path, profile_name: str, config: GateConfig, baselin
     (bool, str)
         Whether the gate passed, and the text it printed into ``gate.md`` (table and summary).
     """
-    path = Path(baseline) if baseline is not None else baseline_path(profile_name, cpu=cpu_kind())
-    verdicts = compare(read_baseline(path), read_run(out_dir), config, skip)
+    directory = Path(BASELINE_DIR if directory is None else directory)
+    cpu = cpu_kind()
+    baseline, not_gated = read_baselines(profile_name, directory, cpu)
+    verdicts = compare(baseline, read_run(out_dir), config, skip, not_gated)
     passed = not any(v.failed for v in verdicts)
-    recorded = baseline_cpu(path)
-    text = (f"# Regression gate ({profile_name})\n\nBaseline: `{path}` (recorded on {recorded or 'an unrecorded CPU'}; "
-            f"this machine: {cpu_kind()}). Ratio tolerance {config.ratio_tolerance:.0%} "
-            f"unless overridden ({config.ratio_tolerances or 'no overrides'}); PSNR tolerance "
-            f"{config.psnr_tolerance_db} dB.\n\n{format_table(verdicts)}\n\n{summary(verdicts)}\n")
+    ratios = (f"speed ratios **not gated**: {not_gated}" if not_gated else
+              f"speed ratios against `{_shown(ratio_baseline_path(profile_name, cpu, directory))}`, recorded on this "
+              f"machine kind ({cpu}), tolerance {config.ratio_tolerance:.0%} unless overridden "
+              f"({config.ratio_tolerances or 'no overrides'})")
+    text = (f"# Regression gate ({profile_name})\n\nMachine-independent metrics (counts, zeros, passes, PSNRs of the "
+            f"committed networks) against `{_shown(baseline_path(profile_name, directory))}`, one baseline for every "
+            f"machine kind, PSNR tolerance {config.psnr_tolerance_db} dB; {ratios}.\n\n"
+            f"{format_table(verdicts)}\n\n{summary(verdicts)}\n")
     atomic_write_bytes(Path(out_dir) / "gate.md", text.encode())
     return passed, text
 
 
-def update_baseline(out_dir: str | Path, profile_name: str, baseline: str | Path | None = None) -> tuple[Path, str]:
-    """Rewrite the profile's baseline from the run in ``out_dir``, recording this machine's CPU model.
-
-    Without ``baseline``: ``PROFILE.json`` when it was recorded on this CPU model (or does
-    not exist yet), else this model's own ``PROFILE.SLUG.json``.
-
-    Returns
-    -------
-    (Path, str)
-        The baseline written, and a one-line account of what changed (added, removed,
-        changed metrics) against the previous baseline.
-    """
-    cpu = cpu_kind()
-    if baseline is not None:
-        path = Path(baseline)
-    else:
-        general = baseline_path(profile_name)
-        same_model = not general.exists() or baseline_cpu(general) == cpu
-        path = general if same_model else general.with_name(f"{profile_name}.{cpu_slug(cpu)}.json")
-    from reports.plugins import is_plugin_metric
-
-    # plug-ins' metrics (kdtrace report --accelerator/--denoiser) belong to that run, never to the baseline
-    run = {name: metric for name, metric in read_run(out_dir).items() if not is_plugin_metric(name)}
-    previous = read_baseline(path) if path.exists() else {}
-    old_text = baseline_document(profile_name, previous) if previous else ""
-    write_baseline(path, profile_name, run, cpu)
-    stored = read_baseline(path)
+def _account(path: Path, previous: dict[str, Metric], stored: dict[str, Metric]) -> str:
     added = sorted(set(stored) - set(previous))
     removed = sorted(set(previous) - set(stored))
     changed = sorted(name for name in set(stored) & set(previous) if stored[name] != previous[name])
-    note = (f"{path}: {len(stored)} metrics; {len(added)} added, {len(removed)} removed, {len(changed)} changed"
-            + ("" if old_text else " (new baseline)"))
-    return path, note
+    return (f"{_shown(path)}: {len(stored)} metrics; {len(added)} added, {len(removed)} removed, {len(changed)} changed"
+            + ("" if previous else " (new baseline)"))
 
+
+def update_baseline(out_dir: str | Path, profile_name: str,
+                    directory: str | Path | None = None) -> tuple[list[Path], str]:
+    """Rewrite the profile's baselines from the run in ``out_dir``.
+
+    The machine-independent metrics go to ``PROFILE.json`` (shared by every kind), the speed
+    ratios to this machine kind's ``PROFILE.ratios.SLUG.json`` (written only when the run has any).
+
+    Returns
+    -------
+    (list of Path, str)
+        The baselines written, and what changed in each (added, removed, changed metrics).
+    """
+    from reports.plugins import is_plugin_metric
+
+    directory = Path(BASELINE_DIR if directory is None else directory)
+    cpu = cpu_kind()
+    # plug-ins' metrics (kdtrace report --accelerator/--denoiser) belong to that run, never to the baseline
+    run = {name: metric for name, metric in read_run(out_dir).items() if not is_plugin_metric(name)}
+    shared = {name: m for name, m in run.items() if m.kind not in MACHINE_DEPENDENT}
+    ratios = {name: m for name, m in run.items() if m.kind in MACHINE_DEPENDENT}
+    targets = [(baseline_path(profile_name, directory), shared, None)]
+    if ratios:
+        targets.append((ratio_baseline_path(profile_name, cpu, directory), ratios, cpu))
+    written, notes = [], []
+    for path, metrics, recorded_on in targets:
+        previous = read_baseline(path) if path.exists() else {}
+        write_baseline(path, profile_name, metrics, recorded_on)
+        written.append(path)
+        notes.append(_account(path, previous, read_baseline(path)))
+    return written, "; ".join(notes)

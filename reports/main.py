@@ -224,7 +224,7 @@ def run_report(config: Config, profile_name: str, out_dir: str | Path, scenes: l
     fresh : bool
         Passed to every part: recompute instead of reusing finished results.
     gate : bool
-        Compare the metrics with ``reports/baseline/PROFILE.json`` afterwards
+        Compare the metrics with the profile's baselines afterwards
         (:func:`reports.gate.run_gate`); baseline metrics of scenes left out are skipped.
     parts : list of str, optional
         Names from :data:`PARTS` (default: all, in order).
@@ -249,7 +249,7 @@ def run_report(config: Config, profile_name: str, out_dir: str | Path, scenes: l
     plugins = {"accelerators": list(accelerators), "denoisers": list(denoisers)}
     check_specs(plugins["accelerators"], plugins["denoisers"])  # an unknown or unimportable plug-in fails first
     if gate:
-        gate_module.read_baseline(gate_module.baseline_path(profile_name))  # a missing or malformed baseline fails first
+        gate_module.read_baselines(profile_name)  # a missing or malformed baseline fails first
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
 

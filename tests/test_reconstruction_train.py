@@ -280,6 +280,40 @@ def test_warmup_and_decay_are_part_of_the_model_key_only_when_used():
     assert train._training_dir("denoiser", model, loss, "hash", longer, rate) == plain
 
 
+def test_the_training_arithmetic_is_not_part_of_the_model_key():
+    """A network trained in bf16 is found on a machine that would train in fp32, and the reverse."""
+    model, loss = TinyDenoiser(), nn.MSELoss()
+    keys = {train._training_dir("denoiser", model, loss, "hash", dataclasses.replace(PROFILE, precision=precision),
+                                PROFILE.learning_rate) for precision in ("fp32", "bf16", "auto")}
+    assert len(keys) == 1
+
+
+def test_every_committed_network_sits_under_the_key_of_its_recorded_settings():
+    """Each committed folder's name is the key this code computes from its ``result.json``, so any
+    machine kind finds it (whatever precision it was trained in)."""
+    from reconstruction.loss import DENOISER_SIGMA, SUPERRESOLUTION_SIGMA, EdgeAwareLoss
+    from reconstruction.models import Denoiser, Superresolution
+
+    folders = [folder for store in (train.REPOSITORY / "models").iterdir() for folder in store.iterdir()]
+    assert folders
+    for folder in folders:
+        record = json.loads((folder / "result.json").read_text())
+        assert sorted(path.name for path in folder.iterdir()) == sorted(train.PUBLISHED_FILES)
+        settings = record["provenance"]["config"]
+        kind = folder.name.split("-")[0]
+        if kind == "denoiser":
+            model = Denoiser(**record["kwargs"])
+            loss = EdgeAwareLoss(DENOISER_SIGMA, settings["denoiser_edge_range_floor"])
+        else:
+            model, loss = Superresolution(), EdgeAwareLoss(SUPERRESOLUTION_SIGMA)
+        assert train.parameter_count(model) == record["parameters"]
+        profile = dataclasses.replace(PROFILE, batch_size=settings["batch_size"], seed=settings["seed"],
+                                      epochs=settings["epochs"])
+        directory = train._training_dir(kind, model, loss, record["data_hash"], profile, record["learning_rate"],
+                                        record["warmup_steps"], record["decay"])
+        assert directory.name == folder.name, f"{folder} is not found under its own key"
+
+
 def test_epoch_counts_of_per_scene_denoisers_mixed_model_and_superresolution():
     base = dataclasses.replace(PROFILE, epochs=5)
     assert (base.denoiser.epochs, base.mixed.epochs) == (5, 5)  # 0: every model trains `epochs`
@@ -356,10 +390,10 @@ def test_a_stored_model_is_reused_where_the_cache_lacks_it_and_checked(cache, tm
     for name, value in first.model.state_dict().items():
         torch.testing.assert_close(again.model.state_dict()[name], value)
     assert not again.model.training
-    # the cache's own training wins over the store: it resumes (here: is finished) in place, and
-    # the stored copy is not written again (result.json would get a new provenance stamp)
+    # the stored copy wins over the cache's own training of the same key (the committed weights
+    # are what every machine measures), and it is not written again
     stamps = {path.name: path.stat().st_mtime_ns for path in stored.iterdir()}
-    assert run(tmp_path / "machine-a", InterruptAfter(0)).directory == tmp_path / "machine-a" / "denoiser-key"
+    assert run(tmp_path / "machine-a", InterruptAfter(0)).directory == stored
     assert {path.name: path.stat().st_mtime_ns for path in stored.iterdir()} == stamps
     with pytest.raises(ValueError, match="holds a TinyDenoiser"):
         run(tmp_path / "machine-c", nn.MSELoss(), OtherTiny())

@@ -96,7 +96,7 @@ def test_changed_kind_fails():
     run = dict(BASELINE)
     run["t/a/refs"] = Metric("t/a/refs", "ratio", 1000.0)
     verdict = _verdicts(run)["t/a/refs"]
-    assert verdict.failed and "kind changed" in verdict.reason
+    assert verdict.failed and verdict.reason == "kind changed from count to ratio"
 
 
 def test_table_has_the_columns_and_reasons():
@@ -107,25 +107,100 @@ def test_table_has_the_columns_and_reasons():
     assert "FAIL: dropped 50%" in text and ">= 1.4 (-30%)" in text
 
 
-def test_run_gate_and_update_baseline_round_trip(tmp_path):
+XEON, EPYC_AVX2 = "Intel(R) Xeon(R) Processor [avx512-bf16]", "AMD EPYC [avx2]"
+
+
+@pytest.fixture
+def on_kind(monkeypatch):
+    """Set the machine kind the gate sees; returns the setter."""
+    def set_kind(kind: str) -> None:
+        monkeypatch.setattr(gate, "cpu_kind", lambda: kind)
+    set_kind(XEON)
+    return set_kind
+
+
+def test_run_gate_and_update_baseline_round_trip(tmp_path, on_kind):
     out = tmp_path / "run"
     write_metrics(out, "t", BASELINE.values())
-    baseline_file = tmp_path / "baseline.json"
-    path, note = gate.update_baseline(out, "quick", baseline=baseline_file)
-    assert path == baseline_file and "6 added" in note
-    text = baseline_file.read_text()
-    assert json.loads(text)["profile"] == "quick"
+    paths, note = gate.update_baseline(out, "quick", directory=tmp_path)
+    shared, ratios = tmp_path / "quick.json", tmp_path / "quick.ratios.intel-r-xeon-r-processor-avx512-bf16.json"
+    assert paths == [shared, ratios] and "4 added" in note and "2 added" in note
+    # the deterministic metrics in the shared file, the speed ratios in the kind's own
+    assert {m.kind for m in gate.read_baseline(shared).values()} == {"psnr", "count", "zero", "pass"}
+    assert set(gate.read_baseline(ratios)) == {"t/a/speed", "t/a/paired"} and gate.baseline_cpu(ratios) == XEON
+    text = shared.read_text()
+    assert json.loads(text)["profile"] == "quick" and "cpu" not in json.loads(text)
     # stable: rewriting changes nothing
-    assert text == gate.baseline_document("quick", gate.read_baseline(baseline_file), gate.baseline_cpu(baseline_file))
-    passed, report = gate.run_gate(out, "quick", CONFIG, baseline=baseline_file)
+    assert text == gate.baseline_document("quick", gate.read_baseline(shared))
+    passed, report = gate.run_gate(out, "quick", CONFIG, directory=tmp_path)
     assert passed and (out / "gate.md").read_text() == report
+    assert "recorded on this machine kind (Intel(R) Xeon(R) Processor [avx512-bf16])" in report
 
     write_metrics(out, "t", _changed("t/a/refs", 1200).values())
-    passed, report = gate.run_gate(out, "quick", CONFIG, baseline=baseline_file)
+    passed, report = gate.run_gate(out, "quick", CONFIG, directory=tmp_path)
     assert not passed and "changed by +200" in report
-    _, note = gate.update_baseline(out, "quick", baseline=baseline_file)
+    _, note = gate.update_baseline(out, "quick", directory=tmp_path)
     assert "0 added, 0 removed, 1 changed" in note
-    assert gate.run_gate(out, "quick", CONFIG, baseline=baseline_file)[0]
+    assert gate.run_gate(out, "quick", CONFIG, directory=tmp_path)[0]
+
+
+def test_a_planted_regression_in_a_count_a_psnr_and_a_ratio_each_fails_the_gate(tmp_path, on_kind):
+    out = tmp_path / "run"
+    write_metrics(out, "t", BASELINE.values())
+    gate.update_baseline(out, "quick", directory=tmp_path)
+    for name, value, reason in (("t/a/refs", 999, "changed by -1"), ("t/a/psnr", 29.5, "dropped 0.50 dB"),
+                                ("t/a/speed", 1.0, "dropped 50%")):
+        write_metrics(out, "t", _changed(name, value).values())
+        passed, report = gate.run_gate(out, "quick", CONFIG, directory=tmp_path)
+        assert not passed and f"FAIL: {reason}" in report and "1 failed" in report
+
+
+def test_every_kind_reads_one_deterministic_baseline_and_only_its_own_ratios(tmp_path, on_kind):
+    """A count recorded on one kind is gated on every kind; a kind with no ratios of its own gates
+    the deterministic metrics and says why its ratios were not gated."""
+    out = tmp_path / "run"
+    write_metrics(out, "t", BASELINE.values())
+    gate.update_baseline(out, "quick", directory=tmp_path)
+
+    on_kind(EPYC_AVX2)
+    passed, report = gate.run_gate(out, "quick", CONFIG, directory=tmp_path)
+    assert passed and "speed ratios **not gated**: no speed-ratio baseline for this machine kind (AMD EPYC [avx2])" in report
+    assert "kinds with one: Intel(R) Xeon(R) Processor [avx512-bf16]" in report and "2 not gated" in report
+    assert "| t/a/speed " in report and "not gated" in report
+    # a slower ratio is not judged here, a changed count is
+    write_metrics(out, "t", _changed("t/a/speed", 0.1).values())
+    assert gate.run_gate(out, "quick", CONFIG, directory=tmp_path)[0]
+    write_metrics(out, "t", _changed("t/a/refs", 1001).values())
+    assert not gate.run_gate(out, "quick", CONFIG, directory=tmp_path)[0]
+    # recording this kind's ratios leaves the shared file and the other kind's ratios as they were
+    write_metrics(out, "t", _changed("t/a/speed", 3.0).values())
+    xeon_ratios = (tmp_path / "quick.ratios.intel-r-xeon-r-processor-avx512-bf16.json").read_text()
+    paths, note = gate.update_baseline(out, "quick", directory=tmp_path)
+    assert paths[1] == tmp_path / "quick.ratios.amd-epyc-avx2.json" and "(new baseline)" in note
+    assert "quick.json: 4 metrics; 0 added, 0 removed, 0 changed" in note
+    assert (tmp_path / "quick.ratios.intel-r-xeon-r-processor-avx512-bf16.json").read_text() == xeon_ratios
+    passed, report = gate.run_gate(out, "quick", CONFIG, directory=tmp_path)
+    assert passed and "quick.ratios.amd-epyc-avx2.json" in report and "0 not gated" in report
+
+
+def test_baselines_recorded_for_another_profile_kind_or_machine_are_refused(tmp_path, on_kind):
+    out = tmp_path / "run"
+    write_metrics(out, "t", BASELINE.values())
+    gate.update_baseline(out, "quick", directory=tmp_path)
+    with pytest.raises(ValueError, match=r"quick\.json was recorded for profile 'quick', not 'standard'"):
+        gate.read_baseline(tmp_path / "quick.json", "standard")
+    ratio_file = tmp_path / "quick.ratios.intel-r-xeon-r-processor-avx512-bf16.json"
+    with pytest.raises(ValueError, match="does not belong in the machine-independent baseline"):
+        gate.read_baseline(ratio_file, "quick", machine_dependent=False)
+    with pytest.raises(ValueError, match="does not belong in a per-machine-kind ratio file"):
+        gate.read_baseline(tmp_path / "quick.json", "quick", machine_dependent=True)
+    document = json.loads(ratio_file.read_text())
+    ratio_file.write_text(json.dumps({**document, "cpu": EPYC_AVX2}))
+    with pytest.raises(ValueError, match="recorded on 'AMD EPYC \\[avx2\\]', not on this machine kind"):
+        gate.run_gate(out, "quick", CONFIG, directory=tmp_path)
+    (tmp_path / "quick.json").unlink()
+    with pytest.raises(FileNotFoundError, match="quick.json"):
+        gate.run_gate(out, "quick", CONFIG, directory=tmp_path)
 
 
 def test_baseline_rounds_floats_to_four_digits(tmp_path):
@@ -170,30 +245,6 @@ def test_gate_config_validates_and_matches_overrides():
         GateConfig(ratio_tolerance=1.5)
     with pytest.raises(ValueError):
         GateConfig(psnr_tolerance_db=-1.0)
-
-
-def test_each_machine_kind_gets_its_own_baseline(tmp_path, monkeypatch):
-    """Fixed-seed training reproduces on one machine kind only: the gate reads, and update-baseline
-    writes, the machine's own PROFILE.SLUG.json once PROFILE.json was recorded on another kind."""
-    out = tmp_path / "run"
-    write_metrics(out, "t", BASELINE.values())
-    monkeypatch.setattr(gate, "BASELINE_DIR", tmp_path)
-    monkeypatch.setattr(gate, "cpu_kind", lambda: "Intel(R) Xeon(R) Processor [amx]")
-    path, _ = gate.update_baseline(out, "quick")
-    assert path == tmp_path / "quick.json" and gate.baseline_cpu(path) == "Intel(R) Xeon(R) Processor [amx]"
-
-    monkeypatch.setattr(gate, "cpu_kind", lambda: "AMD EPYC [avx2]")
-    assert gate.baseline_path("quick", cpu="AMD EPYC [avx2]") == tmp_path / "quick.json"  # none of its own yet
-    write_metrics(out, "t", _changed("t/a/refs", 1200).values())
-    passed, report = gate.run_gate(out, "quick", CONFIG)
-    assert not passed and "recorded on Intel(R) Xeon(R) Processor [amx]; this machine: AMD EPYC [avx2]" in report
-    path, note = gate.update_baseline(out, "quick")
-    assert path == tmp_path / "quick.amd-epyc-avx2.json" and "(new baseline)" in note
-    assert gate.read_baseline(tmp_path / "quick.json")["t/a/refs"].value == 1000  # the Xeon one is kept
-    assert gate.baseline_path("quick", cpu="AMD EPYC [avx2]") == path
-    passed, report = gate.run_gate(out, "quick", CONFIG)
-    assert passed and "quick.amd-epyc-avx2.json" in report
-    assert gate.cpu_slug("Intel(R) Xeon(R) Processor") == "intel-r-xeon-r-processor"
 
 
 def test_machine_kind_names_the_vector_tier():

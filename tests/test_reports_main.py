@@ -131,15 +131,16 @@ def test_unknown_and_missing_names_list_what_exists(fake_parts):
 def test_cli_gate_and_update_baseline(fake_parts, monkeypatch, capsys):
     out = fake_parts / "out"
     assert cli_main(["report", "--parts", "fake", "--scenes", "car", "--out", str(out)]) == 0
-    baseline = fake_parts / "b.json"
-    assert cli_main(["update-baseline", "--out", str(out), "--baseline", str(baseline)]) == 0
-    assert cli_main(["gate", "--out", str(out), "--baseline", str(baseline)]) == 0
+    baselines = fake_parts / "elsewhere"
+    assert cli_main(["update-baseline", "--out", str(out), "--baselines", str(baselines)]) == 0
+    assert (baselines / "quick.json").is_file()
+    assert cli_main(["gate", "--out", str(out), "--baselines", str(baselines)]) == 0
     assert cli_main(["report", "--parts", "fake", "--scenes", "car", "--out", str(out), "--gate"]) == 2  # no baseline yet
     assert "kdtrace update-baseline" in capsys.readouterr().err
     assert cli_main(["update-baseline", "--out", str(out)]) == 0  # the profile's default baseline
     monkeypatch.setenv("FAKE_REFS", "99")
     assert cli_main(["report", "--parts", "fake", "--scenes", "car", "--out", str(out), "--gate"]) == 1
-    assert cli_main(["gate", "--out", str(out), "--baseline", str(baseline)]) == 1
+    assert cli_main(["gate", "--out", str(out), "--baselines", str(baselines)]) == 1
     assert "| fake/car/refs" in capsys.readouterr().out
     assert cli_main(["report", "--profile", "huge", "--parts", "fake"]) == 2
     assert "known profiles: paper, quick" in capsys.readouterr().err
