@@ -21,6 +21,27 @@ from tqdm import tqdm
 from kdtrace.config import load_config
 
 REPOSITORY = Path(__file__).resolve().parents[1]
+#: Environment variable naming the folder of generated results (default ``results`` in the checkout).
+RESULTS_ENV = "KDTRACE_RESULTS"
+
+
+def results_dir(profile: str, out: str | None = None) -> Path:
+    """Where a profile's run writes (``--out``, else ``$KDTRACE_RESULTS/PROFILE``, else ``results/PROFILE``)."""
+    if out:
+        return Path(out)
+    return Path(os.environ.get(RESULTS_ENV) or REPOSITORY / "results") / profile
+
+
+def _writable(folder: Path) -> Path:
+    """``folder``, created if needed; ValueError naming it when nothing can be written there."""
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        probe = folder / f".write-test-{os.getpid()}"
+        probe.write_bytes(b"")
+        probe.unlink()
+    except OSError as error:
+        raise ValueError(f"results folder {folder} is not writable ({error.strerror or error})") from error
+    return folder
 
 
 def _scenes(args, config) -> int:
@@ -138,7 +159,7 @@ def _report(args, config) -> int:
 
     scenes = args.scenes.split(",") if args.scenes else None
     parts = args.parts.split(",") if args.parts else None
-    out_dir = Path(args.out) if args.out else REPOSITORY / "reports" / args.profile
+    out_dir = _writable(results_dir(args.profile, args.out))  # before any work
     if args.scheduler:
         # the environment is where every part (and the dataset generator) looks for a scheduler
         from kdtrace.distributed import SCHEDULER_ENV
@@ -161,7 +182,7 @@ def _report(args, config) -> int:
 def _gate(args, config) -> int:
     from reports.gate import run_gate
 
-    out_dir = Path(args.out) if args.out else REPOSITORY / "reports" / args.profile
+    out_dir = results_dir(args.profile, args.out)
     passed, text = run_gate(out_dir, args.profile, config.gate, directory=args.baselines)
     print(text)
     return 0 if passed else 1
@@ -170,7 +191,7 @@ def _gate(args, config) -> int:
 def _update_baseline(args, config) -> int:
     from reports.gate import update_baseline
 
-    out_dir = Path(args.out) if args.out else REPOSITORY / "reports" / args.profile
+    out_dir = results_dir(args.profile, args.out)
     paths, note = update_baseline(out_dir, args.profile, directory=args.baselines)
     print(f"{note}; review with `git diff {' '.join(map(str, paths))}`")
     return 0
@@ -256,7 +277,7 @@ def build_parser() -> argparse.ArgumentParser:
     report.add_argument("--scenes", help="comma-separated subset of the profile's scenes")
     report.add_argument("--parts", help="comma-separated report parts (default all: table1, agreement, "
                         "reconstruction, error_time, combined, scaleout)")
-    report.add_argument("--out", help="output folder (default reports/PROFILE)")
+    report.add_argument("--out", help="output folder (default results/PROFILE; $KDTRACE_RESULTS/PROFILE when set)")
     report.add_argument("--fresh", action="store_true", help="measure everything again instead of reusing results")
     report.add_argument("--gate", action="store_true", help="then compare with the committed baselines; exit 1 on a regression")
     report.add_argument("--scheduler", help="address of a running Dask scheduler: Table 1 rows and dataset views "
@@ -272,8 +293,8 @@ def build_parser() -> argparse.ArgumentParser:
     for command, run, what in (("gate", _gate, "compare the latest run's metrics with the committed baseline"),
                                ("update-baseline", _update_baseline, "rewrite the committed baseline from the latest run")):
         parser_ = sub.add_parser(command, help=what)
-        parser_.add_argument("--profile", default="quick", help="profile name (selects reports/PROFILE and the baseline)")
-        parser_.add_argument("--out", help="report folder of the run (default reports/PROFILE)")
+        parser_.add_argument("--profile", default="quick", help="profile name (selects results/PROFILE and the baselines)")
+        parser_.add_argument("--out", help="results folder of the run (default results/PROFILE)")
         parser_.add_argument("--baselines", metavar="DIR",
                              help="folder of the baselines PROFILE.json and PROFILE.ratios.KIND.json "
                                   "(default reports/baseline)")

@@ -55,8 +55,10 @@ from kdtrace.cache import atomic_write, atomic_write_bytes, cache_root, content_
 from kdtrace.config import DECAYS, DEFAULT_CONFIG, ReconstructionProfile
 from kdtrace.provenance import stamp
 
-#: The checkout holding ``kdtrace`` and ``reconstruction``: relative model stores are found here.
+#: The checkout holding ``kdtrace``, ``reconstruction`` and the committed ``models``.
 REPOSITORY = Path(__file__).resolve().parents[1]
+#: Where a profile's relative ``model_store`` is found (the checkout).
+MODEL_STORE_ROOT = REPOSITORY
 #: Identifies our checkpoint files; bump the version when their layout changes.
 CHECKPOINT_FORMAT = "kdtrace-reconstruction-checkpoint"
 CHECKPOINT_VERSION = 1
@@ -476,7 +478,7 @@ def _store_dir(directory: Path, profile: ReconstructionProfile) -> Path | None:
     """
     if not profile.model_store:
         return None
-    return REPOSITORY / profile.model_store / Path(directory).name
+    return MODEL_STORE_ROOT / profile.model_store / Path(directory).name
 
 
 def _published_result(model: nn.Module, directory: Path, profile: ReconstructionProfile,

@@ -1108,16 +1108,18 @@ def write_outputs(rows: Sequence[dict], config: Config, profile_name: str, out_d
 
 
 def run_cli(generate_report: Callable[..., list[Metric]], description: str, argv: Sequence[str] | None) -> int:
-    """Command line of a report generator: ``--profile`` (quick), ``--out`` (reports/PROFILE), ``--config``, ``--fresh``."""
+    """Command line of a report generator: ``--profile`` (quick), ``--out`` (results/PROFILE), ``--config``, ``--fresh``."""
     from kdtrace.config import load_config
 
     parser = argparse.ArgumentParser(description=description)
     parser.add_argument("--profile", default="quick")
-    parser.add_argument("--out", help="output folder (default reports/PROFILE)")
+    parser.add_argument("--out", help="output folder (default results/PROFILE)")
     parser.add_argument("--config", help="TOML file overriding kdtrace/defaults.toml")
     parser.add_argument("--fresh", action="store_true", help="measure every scene again")
     args = parser.parse_args(argv)
-    out = Path(args.out) if args.out else Path(__file__).parent / args.profile
+    from kdtrace.cli import results_dir
+
+    out = results_dir(args.profile, args.out)
     for metric in generate_report(load_config(args.config), args.profile, out, fresh=args.fresh):
         print(f"{metric.name} = {metric.value:.4g} ({metric.kind})")
     return 0

@@ -3,10 +3,10 @@
 How to use::
 
     kdtrace report --gate                 # run the quick profile, then gate it
-    kdtrace gate [--profile quick]        # gate the outputs already in reports/PROFILE/
+    kdtrace gate [--profile quick]        # gate the outputs already in results/PROFILE/
     kdtrace update-baseline [--profile quick]   # accept the latest run as the new baseline
 
-A run's metrics are the files ``reports/PROFILE/metrics/*.json`` written by the report
+A run's metrics are the files ``results/PROFILE/metrics/*.json`` written by the report
 parts (:mod:`reports.metrics`). Each metric is compared by its kind:
 
 ========  ==========================================================================

@@ -2,13 +2,13 @@
 
 How to use::
 
-    kdtrace report                          # quick profile, all parts, into reports/quick/
+    kdtrace report                          # quick profile, all parts, into results/quick/
     kdtrace report --profile paper --gate   # full scale, then the regression gate
     kdtrace report --scenes car,bunny --parts table1,agreement
     kdtrace report --scenes cbox-original --accelerator my_bvh:make --denoiser bilateral   # plug-ins' rows too
 
     from reports.main import run_report
-    outcome = run_report(config, "quick", Path("reports/quick"), gate=True)
+    outcome = run_report(config, "quick", Path("results/quick"), gate=True)
 
 The parts (:data:`PARTS`) run in order; each is a module with
 ``generate(config, profile_name, out_dir, fresh=False, progress=True) -> list[Metric]``
@@ -218,7 +218,7 @@ def run_report(config: Config, profile_name: str, out_dir: str | Path, scenes: l
     profile_name : str
         A profile of the configuration (an unknown name lists the known ones).
     out_dir : str or Path
-        Output folder (``reports/PROFILE`` from the command line).
+        Output folder (``results/PROFILE`` from the command line).
     scenes : list of str, optional
         Limit the profile's scenes (see :func:`restrict_scenes`).
     fresh : bool

@@ -1,4 +1,4 @@
-"""Notes a report part wants shown in the report's index (``reports/PROFILE/README.md``).
+"""Notes a report part wants shown in the report's index (``results/PROFILE/README.md``).
 
 A part calls ``warnings.warn(message, ReportNote)``; :func:`reports.main.run_report`
 records every :class:`ReportNote` (and every Mitsuba backend fallback warning) raised

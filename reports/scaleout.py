@@ -3,7 +3,7 @@
 How to use::
 
     from reports import scaleout
-    metrics = scaleout.generate(config, "quick", Path("reports/quick"))   # writes scaleout.md
+    metrics = scaleout.generate(config, "quick", Path("results/quick"))   # writes scaleout.md
 
 Two measurements, in one run:
 

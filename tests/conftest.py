@@ -1,4 +1,5 @@
-"""Shared fixtures: the shared scene folder, an isolated mesh cache, camera coverage."""
+"""Shared fixtures: the shared scene folder, an isolated mesh cache, camera coverage, and the
+committed model stores kept out of reach of tests that train."""
 
 from __future__ import annotations
 
@@ -10,6 +11,29 @@ import pytest
 from kdtrace.oracle import intersect_brute_force
 from kdtrace.rays import camera_rays
 from kdtrace.scenes import SHARED_SCENES_DIRECTORY
+
+
+def _private_store(factory: pytest.TempPathFactory):
+    from reconstruction import train
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(train, "MODEL_STORE_ROOT", factory.mktemp("model-stores"))
+        yield
+
+
+@pytest.fixture(scope="module", autouse=True)
+def private_model_stores_of_module_fixtures(tmp_path_factory):
+    """Relative model stores (``models/quick``, ``models/standard``) resolve in a private folder,
+    so that a test that trains never publishes into the checkout, nor finds another test's model:
+    one folder for a module's fixtures, one for each test (below). A test of the committed networks
+    sets ``reconstruction.train.MODEL_STORE_ROOT`` back to ``train.REPOSITORY``."""
+    yield from _private_store(tmp_path_factory)
+
+
+@pytest.fixture(autouse=True)
+def private_model_stores(tmp_path_factory):
+    """Each test's own private model stores (see :func:`private_model_stores_of_module_fixtures`)."""
+    yield from _private_store(tmp_path_factory)
 
 
 @pytest.fixture(scope="session")
