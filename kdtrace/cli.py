@@ -2,7 +2,8 @@
 
 Subcommands: ``scenes`` (list scene descriptions), ``build`` (build and cache the
 KD-trees of a scene, print their statistics), ``check-embree`` (hit-for-hit agreement
-with Embree), ``render`` (path trace to EXR and PNG), ``report`` (the main job: every
+with Embree), ``render`` (path trace to EXR and PNG), ``compare`` (every metric of two
+images, linear and display-referred, and a FLIP map), ``report`` (the main job: every
 report part of a profile), ``gate`` and ``update-baseline`` (the CI regression gate).
 """
 
@@ -30,6 +31,17 @@ def results_dir(profile: str, out: str | None = None) -> Path:
     if out:
         return Path(out)
     return Path(os.environ.get(RESULTS_ENV) or REPOSITORY / "results") / profile
+
+
+def _positive_float(text: str) -> float:
+    """argparse type: a finite number > 0 (exit 2 with the option named otherwise)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not (value > 0 and value < float("inf")):
+        raise argparse.ArgumentTypeError(f"must be a positive finite number, got {text!r}")
+    return value
 
 
 def _writable(folder: Path) -> Path:
@@ -154,6 +166,42 @@ def _dataset(args, config) -> int:
     return 0
 
 
+def _compare(args, config) -> int:
+    from kdtrace.imageio import read_image, write_colour_map
+    from reconstruction import metrics
+
+    test, test_ldr = read_image(args.test)
+    reference, reference_ldr = read_image(args.reference)
+    if test.shape != reference.shape:
+        raise ValueError(f"{args.test} is {test.shape[1]}x{test.shape[0]}, {args.reference} is "
+                         f"{reference.shape[1]}x{reference.shape[0]}: the images must have the same size")
+    if test_ldr != reference_ldr:
+        warnings.warn("one image is display-encoded (PNG/JPEG) and the other linear: the display-encoded one is "
+                      "decoded with the sRGB curve, but whatever exposure made it is not undone", stacklevel=1)
+    if args.exposure is not None:
+        exposure, rule = args.exposure, "--exposure"
+    elif reference_ldr:
+        exposure, rule = 1.0, "1: the reference is a display-encoded image"
+    else:
+        exposure = metrics.auto_exposure(reference, str(args.reference))
+        rule = f"the reference's {metrics.EXPOSURE_PERCENTILE:g}th-percentile luminance to 1"
+    values = metrics.all_metrics(test, reference, exposure)
+    rows = [("linear (clipped to [0, 1])", "PSNR (dB)", values["psnr"]), ("linear (clipped to [0, 1])", "RMSE", values["rmse"]),
+            ("linear (clipped to [0, 1])", "SSIM", values.get("ssim")), ("HDR (unclipped)", "relMSE", values["relmse"]),
+            ("HDR (unclipped)", "SMAPE", values["smape"]), ("display", "PSNR (dB)", values["display_psnr"]),
+            ("display", "RMSE", values["display_rmse"]), ("display", "SSIM", values.get("display_ssim")),
+            ("display", "FLIP (LDR, 67 ppd)", values["flip"])]
+    print(f"{args.test} against {args.reference}, {test.shape[1]}x{test.shape[0]}"
+          + (" (display-encoded test image, decoded to linear)" if test_ldr else ""))
+    print(f"display tonemapping: exposure {exposure:.6g} ({rule}), clip to [0, 1], sRGB transfer curve\n")
+    print(tabulate([(space, name, "-" if value is None else f"{value:.6g}") for space, name, value in rows],
+                   headers=("space", "metric", "value"), tablefmt="github", disable_numparse=True))
+    if args.map:
+        error_map, _ = metrics.flip_map(test, reference, exposure)
+        print(f"\nFLIP error map (magma, 0 black to 1 white): {write_colour_map(args.map, error_map)}")
+    return 0
+
+
 def _report(args, config) -> int:
     from reports.main import run_report
 
@@ -231,6 +279,14 @@ def build_parser() -> argparse.ArgumentParser:
     render.add_argument("--variant", choices=("local", "naive"), default="local")
     render.add_argument("--out", default="renders", help="output folder")
     render.set_defaults(run=_render)
+
+    compare = sub.add_parser("compare", help="every metric of two images, linear and display-referred, and a FLIP map")
+    compare.add_argument("test", help="image to judge: EXR or NPY (linear), PNG or JPEG (sRGB)")
+    compare.add_argument("reference", help="the reference image, same size")
+    compare.add_argument("--exposure", type=_positive_float,
+                         help="display exposure (default: the reference's 99th-percentile luminance to 1; 1 for PNG)")
+    compare.add_argument("--map", metavar="PNG", help="also write the FLIP error map here")
+    compare.set_defaults(run=_compare)
 
     reference = sub.add_parser("reference", help="render (or fetch from the cache) a Mitsuba 3 reference image")
     reference.add_argument("scene")

@@ -42,6 +42,79 @@ def read_exr(path: str | Path) -> np.ndarray:
     return np.array(mitsuba.Bitmap(str(path)), dtype=np.float32)
 
 
+#: File name endings :func:`read_image` reads as display-encoded (sRGB, 0-1) images.
+DISPLAY_SUFFIXES = (".png", ".jpg", ".jpeg")
+
+
+def read_image(path: str | Path) -> tuple[np.ndarray, bool]:
+    """Read an image for comparison as linear float64 RGB, (H, W, 3).
+
+    OpenEXR (linear, through Mitsuba), NumPy ``.npy`` (linear) and PNG/JPEG (sRGB-encoded
+    8- or 16-bit, decoded to linear). A grey image is repeated on three channels and an alpha
+    channel dropped, as image viewers show them.
+
+    Returns
+    -------
+    image : ndarray, (H, W, 3), float64
+    display_encoded : bool
+        True for PNG/JPEG (the file already is the displayed image).
+
+    Raises
+    ------
+    FileNotFoundError
+        When ``path`` does not exist or is a folder.
+    ValueError
+        Naming the file: an unknown type, an unreadable file, another shape, NaN/inf values.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no such file")
+    suffix = path.suffix.lower()
+    try:
+        if suffix == ".exr":
+            image = read_exr(path).astype(np.float64)
+        elif suffix == ".npy":
+            image = np.load(path, allow_pickle=False).astype(np.float64)
+        elif suffix in DISPLAY_SUFFIXES:
+            from PIL import Image
+
+            with Image.open(path) as opened:
+                mode_max = 65535.0 if opened.mode.startswith("I;16") or opened.mode == "I" else 255.0
+                image = srgb_decode(np.asarray(opened, dtype=np.float64) / mode_max)
+        else:
+            raise ValueError(f"{path}: unknown image type {suffix!r} (EXR, NPY, PNG or JPEG)")
+    except (OSError, RuntimeError, TypeError) as error:
+        raise ValueError(f"{path}: cannot be read as an image ({error})") from error
+    if image.ndim == 2:
+        image = np.repeat(image[:, :, None], 3, axis=2)
+    elif image.ndim == 3 and image.shape[2] in (1, 2):
+        image = np.repeat(image[:, :, :1], 3, axis=2)
+    elif image.ndim == 3 and image.shape[2] == 4:
+        image = image[:, :, :3]
+    if image.ndim != 3 or image.shape[2] != 3 or 0 in image.shape:
+        raise ValueError(f"{path}: expected an image of shape (H, W), (H, W, 3) or (H, W, 4), got {image.shape}")
+    bad = int(np.count_nonzero(~np.isfinite(image)))
+    if bad:
+        raise ValueError(f"{path}: {bad} NaN/inf values")
+    return image, suffix in DISPLAY_SUFFIXES
+
+
+def srgb_decode(encoded: np.ndarray) -> np.ndarray:
+    """Inverse of :func:`srgb_encode` on [0, 1]: sRGB-encoded values to linear."""
+    encoded = np.clip(np.asarray(encoded, dtype=np.float64), 0.0, 1.0)
+    return np.where(encoded <= 0.04045, encoded / 12.92, ((encoded + 0.055) / 1.055) ** 2.4)
+
+
+def write_colour_map(path: str | Path, values: np.ndarray, colormap: str = "magma") -> Path:
+    """Write a (H, W) map of values in [0, 1] as an 8-bit PNG through a matplotlib colour map."""
+    from matplotlib import colormaps
+    from PIL import Image
+
+    rgb = colormaps[colormap](np.clip(np.asarray(values, dtype=np.float64), 0.0, 1.0))[:, :, :3]
+    encoded = np.round(rgb * 255.0).astype(np.uint8)
+    return atomic_write(path, lambda name: Image.fromarray(encoded).save(name, format="PNG"))
+
+
 def srgb_encode(linear: np.ndarray) -> np.ndarray:
     """sRGB transfer function of linear values clamped to [0, 1] (NaN -> 0)."""
     linear = np.clip(np.nan_to_num(np.asarray(linear, dtype=np.float64), nan=0.0), 0.0, 1.0)

@@ -97,6 +97,27 @@ def denoise_view(model: nn.Module, view: dict[str, np.ndarray], auxiliary: tuple
     return output[0].permute(1, 2, 0).numpy()
 
 
+def beyond_input(outputs: Sequence[np.ndarray], inputs: Sequence[np.ndarray]) -> int:
+    """Pixels of the denoised ``outputs`` brighter than anything in their noisy input.
+
+    A denoiser averages samples: no output pixel can be brighter than the brightest value of
+    its own noisy frame. A pixel above it (in any channel) is a blown-up network output, not
+    a denoising error; its PSNR alone would hide that.
+
+    Parameters
+    ----------
+    outputs, inputs : sequences of ndarray, (H, W, 3)
+        Linear radiance of each view, denoised and noisy.
+
+    Returns
+    -------
+    int
+        Pixels, over all views, with a channel above the view's input maximum.
+    """
+    return int(sum(np.count_nonzero(np.any(output > float(np.max(noisy)), axis=-1))
+                   for output, noisy in zip(outputs, inputs, strict=True)))
+
+
 def denoiser_quality(model: nn.Module, dataset, split: str | None = "test", auxiliary: tuple[str, ...] = ("albedo",),
                      with_oidn: bool = True) -> dict[str, dict[str, float]]:
     """Pooled metrics of noisy input, ``model`` and (optionally) OIDN on the views of one split.
@@ -106,7 +127,8 @@ def denoiser_quality(model: nn.Module, dataset, split: str | None = "test", auxi
     Returns
     -------
     dict
-        Method (``"noisy"``, ``"ours"``, ``"oidn"``) -> :func:`pooled` metrics.
+        Method (``"noisy"``, ``"ours"``, ``"oidn"``) -> :func:`pooled` metrics; ``"ours"`` also
+        has ``beyond_input``, the pixels brighter than their whole noisy frame (:func:`beyond_input`).
     """
     from reconstruction.baselines import noisy_input, oidn
 
@@ -119,7 +141,9 @@ def denoiser_quality(model: nn.Module, dataset, split: str | None = "test", auxi
         outputs["ours"].append(denoise_view(model, view, auxiliary))
         if with_oidn:
             outputs["oidn"].append(oidn(view["noisy"], view["albedo"], view["normal"]))
-    return {method: pooled(images, references) for method, images in outputs.items()}
+    quality = {method: pooled(images, references) for method, images in outputs.items()}
+    quality["ours"]["beyond_input"] = beyond_input(outputs["ours"], outputs["noisy"])
+    return quality
 
 
 #: Photographs held out from superresolution training and validation (the photo test set,

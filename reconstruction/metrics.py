@@ -1,19 +1,32 @@
 """Image quality metrics, the one module every evaluation uses.
 
-Conventions (argument order is always ``(test, reference)``):
+Two image spaces, named in every table that uses them:
 
-* **PSNR, RMSE** (the paper's §6 metrics): linear images clipped to [0, 1], data range
-  1: ``RMSE = sqrt(mean((clip(a) − clip(b))²))``, ``PSNR = −20·log10(RMSE)`` dB
-  (``inf`` for identical images).
-* **SSIM**: ``skimage.metrics.structural_similarity`` on the clipped images with
-  ``data_range=1`` and ``channel_axis=-1`` (Gaussian-free 7×7 default window).
-* **relMSE** on HDR (unclipped) images: ``mean((a − b)² / (b² + ε))``, ε = 0.01.
-* **FLIP**: LDR-FLIP (``flip_evaluator.evaluate(..., "LDR")``) of the clipped linear
-  images sRGB-encoded (:func:`kdtrace.imageio.srgb_encode`), at the default 67 pixels
-  per degree; the mean of the error map, in [0, 1] (lower is better).
+**Linear** (HDR radiance, as renderers and the paper's §6 equations produce it):
 
-Accepted shapes: (H, W) or (H, W, C) with C in {1, 3} (FLIP: (H, W, 3) only); the two
-images must have the same shape and contain only finite values, else ``ValueError``.
+* **PSNR, RMSE**: linear images clipped to [0, 1], data range 1:
+  ``RMSE = sqrt(mean((clip(a) − clip(b))²))``, ``PSNR = −20·log10(RMSE)`` dB (``inf`` for
+  identical images). On a dark scene almost every value is near 0, so this rewards the
+  black and barely sees the image a person looks at.
+* **relMSE** on unclipped images: ``mean((a − b)² / (b² + ε))``, ε = 0.01 (the plain
+  relative MSE; :func:`references.ztest.relmse_variance_corrected` is the one that subtracts the
+  reference's own variance).
+* **SMAPE** on unclipped images: ``mean(|a − b| / (|a| + |b| + ε))``, ε = 0.01, in [0, 1].
+
+**Display** (the image a person sees, and the space of the paper's 0–1 PSNRs): one
+tonemapping per view, :func:`to_display`: the linear image times an **exposure** that maps
+the reference's 99th-percentile luminance (Rec. 709) to 1 (:func:`auto_exposure`; the same
+exposure for every method compared on that view), clipped to [0, 1], then the sRGB transfer
+curve. On it:
+
+* **display PSNR, RMSE** (data range 1), **SSIM** (scikit-image, ``data_range=1``,
+  ``channel_axis=-1``, 7×7 window), and
+* **FLIP**: LDR-FLIP (``flip_evaluator.evaluate(..., "LDR")``) at the default 67 pixels per
+  degree, the mean of the error map in [0, 1] (lower is better).
+
+Argument order is always ``(test, reference)``. Accepted shapes: (H, W) or (H, W, C) with
+C in {1, 3} (FLIP and the display space: (H, W, 3) only); the two images must have the same
+shape and contain only finite values, else ``ValueError``.
 """
 
 from __future__ import annotations
@@ -26,6 +39,12 @@ from kdtrace.imageio import srgb_encode
 
 #: ε of relMSE (stabilises dark reference pixels).
 RELMSE_EPSILON = 0.01
+#: ε of SMAPE (an all-black pixel pair scores 0, not 0/0).
+SMAPE_EPSILON = 0.01
+#: The reference's luminance percentile that the automatic exposure maps to display white.
+EXPOSURE_PERCENTILE = 99.0
+#: Rec. 709 / sRGB luminance weights of linear R, G, B.
+LUMINANCE_WEIGHTS = (0.2126, 0.7152, 0.0722)
 
 
 def _checked_pair(test, reference, *, rgb_only: bool = False) -> tuple[np.ndarray, np.ndarray]:
@@ -77,22 +96,98 @@ def relmse(test, reference) -> float:
     return float(np.mean((test - reference) ** 2 / (reference**2 + RELMSE_EPSILON)))
 
 
-def flip(test, reference) -> float:
-    """Mean LDR-FLIP error of the sRGB-encoded, clipped linear (H, W, 3) images."""
+def smape(test, reference) -> float:
+    """Symmetric mean absolute percentage error of HDR images, ``mean(|a − b| / (|a| + |b| + 0.01))``."""
+    test, reference = _checked_pair(test, reference)
+    return float(np.mean(np.abs(test - reference) / (np.abs(test) + np.abs(reference) + SMAPE_EPSILON)))
+
+
+def luminance(image) -> np.ndarray:
+    """Rec. 709 luminance of a linear (H, W, 3) image, (H, W)."""
+    image = np.asarray(image, dtype=np.float64)
+    if image.ndim != 3 or image.shape[2] != 3:
+        raise ValueError(f"expected an (H, W, 3) image, got {image.shape}")
+    return image @ np.asarray(LUMINANCE_WEIGHTS)
+
+
+def auto_exposure(reference, name: str = "reference", percentile: float = EXPOSURE_PERCENTILE) -> float:
+    """The exposure that maps the reference's ``percentile`` luminance to display white (1).
+
+    Raises
+    ------
+    ValueError
+        Naming ``name`` (e.g. the view) when the reference has non-finite values or that
+        luminance is not positive (an all-black view has no exposure).
+    """
+    lum = luminance(reference)
+    if not np.all(np.isfinite(lum)):
+        raise ValueError(f"{name}: no exposure: the reference has {int(np.count_nonzero(~np.isfinite(lum)))} NaN/inf pixels")
+    level = float(np.percentile(lum, percentile))
+    if not level > 0 or not math.isfinite(1.0 / level):
+        raise ValueError(f"{name}: no exposure: the reference's {percentile:g}th-percentile luminance is {level:g}")
+    return 1.0 / level
+
+
+def to_display(image, exposure: float) -> np.ndarray:
+    """The displayed image: ``srgb(clip(image · exposure, 0, 1))`` of a linear (H, W, 3) image, float64 in [0, 1]."""
+    if not (math.isfinite(exposure) and exposure > 0):
+        raise ValueError(f"exposure must be a positive finite number, got {exposure!r}")
+    return srgb_encode(np.asarray(image, dtype=np.float64) * exposure)
+
+
+def flip_map(test, reference, exposure: float = 1.0) -> tuple[np.ndarray, float]:
+    """LDR-FLIP error map (H, W) of the displayed images and its mean (see module docstring)."""
     import flip_evaluator
 
     test, reference = _checked_pair(test, reference, rgb_only=True)
-    reference_srgb, test_srgb = (np.ascontiguousarray(srgb_encode(image), dtype=np.float32) for image in (reference, test))
-    _, mean_error, _ = flip_evaluator.evaluate(reference_srgb, test_srgb, "LDR", applyMagma=False)
-    return float(mean_error)
+    reference_srgb, test_srgb = (np.ascontiguousarray(to_display(image, exposure), dtype=np.float32)
+                                 for image in (reference, test))
+    error_map, mean_error, _ = flip_evaluator.evaluate(reference_srgb, test_srgb, "LDR", applyMagma=False)
+    return np.asarray(error_map).reshape(test.shape[:2]), float(mean_error)
 
 
-def all_metrics(test, reference) -> dict[str, float]:
-    """Every metric that applies: ``psnr``, ``rmse``, ``ssim``, ``relmse`` and, for RGB, ``flip``."""
+def flip(test, reference, exposure: float = 1.0) -> float:
+    """Mean LDR-FLIP error of the displayed (H, W, 3) images (``exposure`` 1: sRGB of the clipped linear image)."""
+    return flip_map(test, reference, exposure)[1]
+
+
+def display_metrics(test, reference, exposure: float | None = None, name: str = "reference") -> dict[str, float]:
+    """Display-referred metrics of one (H, W, 3) pair: the tonemapping of :func:`to_display`.
+
+    Parameters
+    ----------
+    test, reference : array_like, (H, W, 3)
+        Linear radiance.
+    exposure : float, optional
+        Default :func:`auto_exposure` of the reference.
+    name : str
+        Names the view in errors.
+
+    Returns
+    -------
+    dict
+        ``exposure``, ``display_psnr`` (dB), ``display_rmse``, ``display_ssim`` (images of at
+        least 7×7) and ``flip``.
+    """
+    test, reference = _checked_pair(test, reference, rgb_only=True)
+    exposure = auto_exposure(reference, name) if exposure is None else float(exposure)
+    shown_test, shown_reference = to_display(test, exposure), to_display(reference, exposure)
+    result = {"exposure": exposure, "display_psnr": psnr(shown_test, shown_reference),
+              "display_rmse": rmse(shown_test, shown_reference)}
+    if min(test.shape[:2]) >= 7:
+        result["display_ssim"] = ssim(shown_test, shown_reference)
+    result["flip"] = flip(test, reference, exposure)
+    return result
+
+
+def all_metrics(test, reference, exposure: float | None = None) -> dict[str, float]:
+    """Every metric that applies: linear ``psnr``, ``rmse``, ``ssim``, ``relmse``, ``smape`` and,
+    for RGB, the :func:`display_metrics` (``exposure`` as there)."""
     test, reference = _checked_pair(test, reference)
-    result = {"psnr": psnr(test, reference), "rmse": rmse(test, reference), "relmse": relmse(test, reference)}
+    result = {"psnr": psnr(test, reference), "rmse": rmse(test, reference), "relmse": relmse(test, reference),
+              "smape": smape(test, reference)}
     if min(test.shape[:2]) >= 7:
         result["ssim"] = ssim(test, reference)
     if test.ndim == 3 and test.shape[2] == 3:
-        result["flip"] = flip(test, reference)
+        result.update(display_metrics(test, reference, exposure))
     return result

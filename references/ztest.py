@@ -2,7 +2,7 @@
 
 How to use::
 
-    from references.ztest import z_test, relmse, loglog_slope, write_failure_artefacts
+    from references.ztest import z_test, relmse_variance_corrected, loglog_slope, write_failure_artefacts
     result = z_test(ours.rgb, ours.variance, ref.rgb, ref.variance, ours_spp=256, ref_spp=256)
     result.passed, result.pass_rate, result.summary()
     if not result.passed:
@@ -52,7 +52,7 @@ in float32) and are not counted in ``m``. A non-finite value on either side fail
 
 Bias: relMSE against spp
 ------------------------
-``relmse(a, b, var_b)`` is the mean over pixels and channels of
+``relmse_variance_corrected(a, b, var_b)`` is the mean over pixels and channels of
 ``((a - b)² - var_b) / (b² + 0.01)``; subtracting the reference's variance of the mean
 removes its own noise from the expectation, so for an unbiased renderer
 ``E[relMSE] = mean(var_a / (b² + 0.01)) ∝ 1/spp``. A bias ``β`` adds a floor
@@ -246,7 +246,7 @@ def z_test(ours: np.ndarray, ours_variance: np.ndarray, reference: np.ndarray, r
 
 
 # ------------------------------------------------------------------ bias: relMSE against spp
-def relmse(image: np.ndarray, reference: np.ndarray, reference_variance: np.ndarray | None = None,
+def relmse_variance_corrected(image: np.ndarray, reference: np.ndarray, reference_variance: np.ndarray | None = None,
            epsilon: float = RELMSE_EPSILON) -> float:
     """Mean over pixels and channels of ``((a - b)² - var_b) / (b² + ε)``.
 
@@ -388,7 +388,7 @@ def compare_scene(scene, spp: int, ref_spp: int, max_depth: int, seed: int, widt
     settings = {"spp": spp, "ref_spp": ref_spp, "max_depth": max_depth, "seed": seed, "width": width,
                 "height": height}
     return Comparison(scene.name, ours, reference, result,
-                      relmse(ours.rgb, reference.rgb, reference.variance), settings)
+                      relmse_variance_corrected(ours.rgb, reference.rgb, reference.variance), settings)
 
 
 def balanced_seeds(spps: tuple[int, ...], first_seed: int, renders_at_max: int = 1) -> list[list[int]]:
@@ -440,7 +440,7 @@ def relmse_curve(scene, spps: tuple[int, ...], reference, max_depth: int, seeds,
         for seed in level_seeds:
             image = render(scene, spp=spp, max_depth=max_depth, seed=seed, width=width, height=height, aux=False,
                            tree=tree).rgb
-            values[i] += relmse(image, reference.rgb, reference.variance) / len(level_seeds)
+            values[i] += relmse_variance_corrected(image, reference.rgb, reference.variance) / len(level_seeds)
     return values, loglog_slope(np.asarray(spps), values)
 
 

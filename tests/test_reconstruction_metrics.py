@@ -1,4 +1,4 @@
-"""Metrics and baselines of the reconstruction stage (issue 4, §4)."""
+"""Metrics (linear and display-referred) and baselines of the reconstruction stage."""
 
 from __future__ import annotations
 
@@ -39,7 +39,48 @@ def test_ssim_relmse_and_flip():
     assert metrics.flip(reference, reference) == pytest.approx(0.0, abs=1e-6)
     assert 0 < metrics.flip(noisy, reference) < 1
     result = metrics.all_metrics(noisy, reference)
-    assert set(result) == {"psnr", "rmse", "ssim", "relmse", "flip"}
+    assert set(result) == {"psnr", "rmse", "ssim", "relmse", "smape", "exposure", "display_psnr", "display_rmse",
+                           "display_ssim", "flip"}
+
+
+def test_smape_by_hand():
+    reference = np.full((2, 2, 3), 1.0)
+    assert metrics.smape(reference * 3, reference) == pytest.approx(2.0 / 4.01)
+    assert metrics.smape(np.zeros((2, 2)), np.zeros((2, 2))) == 0.0
+
+
+def test_the_display_space_exposes_the_reference_and_applies_the_srgb_curve():
+    """A dark scene: linear PSNR sees almost nothing, the displayed image shows the error."""
+    reference = np.full((16, 16, 3), 0.002)
+    reference[:4] = 0.01  # the brightest 25% of the view: its 99th-percentile luminance
+    test = reference * 1.5
+    assert metrics.auto_exposure(reference) == pytest.approx(100.0)
+    shown = metrics.display_metrics(test, reference)
+    assert shown["exposure"] == pytest.approx(100.0)
+    # by hand: the bright rows clip to 1 either way; the rest is srgb(0.3) against srgb(0.2)
+    srgb = lambda v: 1.055 * v ** (1 / 2.4) - 0.055  # noqa: E731
+    rmse = math.sqrt(0.75 * (srgb(0.3) - srgb(0.2)) ** 2)
+    assert shown["display_rmse"] == pytest.approx(rmse)
+    assert shown["display_psnr"] == pytest.approx(-20 * math.log10(rmse))
+    assert metrics.psnr(test, reference) > 50 > shown["display_psnr"] + 25
+    assert shown["flip"] > metrics.flip(test, reference)  # unexposed, the dark error is nearly invisible
+    # an explicit exposure is used as given
+    assert metrics.display_metrics(test, reference, exposure=1.0)["display_psnr"] == pytest.approx(
+        metrics.psnr(metrics.to_display(test, 1.0), metrics.to_display(reference, 1.0)))
+    error_map, mean = metrics.flip_map(test, reference, 100.0)
+    assert error_map.shape == (16, 16) and mean == pytest.approx(float(error_map.mean()), rel=1e-5)
+
+
+def test_an_exposure_that_cannot_be_defined_names_the_view():
+    with pytest.raises(ValueError, match="view 3: no exposure: the reference's 99th-percentile luminance is 0"):
+        metrics.auto_exposure(np.zeros((8, 8, 3)), "view 3")
+    bad = np.ones((8, 8, 3))
+    bad[0, 0, 1] = np.inf
+    with pytest.raises(ValueError, match="view 3: no exposure: the reference has 1 NaN/inf"):
+        metrics.auto_exposure(bad, "view 3")
+    for exposure in (0.0, -1.0, math.nan, math.inf):
+        with pytest.raises(ValueError, match="exposure must be"):
+            metrics.to_display(np.ones((2, 2, 3)), exposure)
 
 
 def test_metrics_reject_bad_input():
