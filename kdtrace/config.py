@@ -493,11 +493,14 @@ class GateConfig:
         name -> relative tolerance; the first matching pattern (in file order) wins.
     psnr_tolerance_db : float
         Largest allowed PSNR drop, dB.
+    flip_tolerance : float
+        Largest allowed rise of a mean FLIP error (absolute, FLIP is in [0, 1]).
     """
 
     ratio_tolerance: float = 0.35
     ratio_tolerances: dict[str, float] = dataclasses.field(default_factory=dict)
     psnr_tolerance_db: float = 0.1
+    flip_tolerance: float = 0.002
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "ratio_tolerances", dict(self.ratio_tolerances))
@@ -506,6 +509,8 @@ class GateConfig:
                 raise ValueError(f"gate ratio tolerances must be in [0, 1), got {tolerance!r}")
         if self.psnr_tolerance_db < 0.0:
             raise ValueError("gate.psnr_tolerance_db must be >= 0")
+        if not 0.0 <= self.flip_tolerance < 1.0:
+            raise ValueError(f"gate.flip_tolerance must be in [0, 1), got {self.flip_tolerance!r}")
 
     def tolerance_for(self, name: str) -> float:
         """Relative ratio tolerance of the metric ``name`` (first matching override, else the default)."""

@@ -47,25 +47,33 @@ def _resolve(profile: str | ReconstructionProfile) -> ReconstructionProfile:
 
 
 def pooled(predictions: Sequence[np.ndarray], references: Sequence[np.ndarray]) -> dict[str, float]:
-    """Pooled RMSE and PSNR, and the mean per-image PSNR, of image pairs clipped to [0, 1].
+    """Pooled metrics of image pairs, linear and (for RGB) display-referred.
 
     Parameters
     ----------
     predictions, references : sequences of ndarray
-        Matching shapes per pair (any layout, e.g. (H, W, 3)).
+        Matching shapes per pair (any layout, e.g. (H, W, 3)); linear radiance.
 
     Returns
     -------
     dict
-        ``rmse`` (over all values of all pairs), ``psnr`` (−20·log10 of it, ``inf`` if
-        zero), ``psnr_mean`` (mean of the per-image PSNRs, each capped at 100 dB),
-        ``per_image_psnr`` (those PSNRs, in the order of the pairs), ``images`` and
-        ``pixels`` (values counted / channels are not separated).
+        Linear, clipped to [0, 1]: ``rmse`` (over all values of all pairs), ``psnr`` (−20·log10
+        of it, ``inf`` if zero), ``psnr_mean`` (mean of the per-image PSNRs, each capped at 100
+        dB), ``per_image_psnr`` (those PSNRs, in the order of the pairs). HDR: ``relmse`` and
+        ``smape`` (means over all values, :mod:`reconstruction.metrics`). When every pair is
+        (H, W, 3), display-referred (each view tonemapped with its reference's exposure,
+        :func:`reconstruction.metrics.display_metrics`): ``display_rmse`` and ``display_psnr``
+        pooled over all displayed values, and ``flip``, the pixel-weighted mean FLIP. Also
+        ``images`` and ``pixels`` (values counted / channels are not separated).
     """
+    from reconstruction import metrics
+
     if len(predictions) == 0 or len(predictions) != len(references):
         raise ValueError(f"need matching, non-empty image lists, got {len(predictions)} and {len(references)}")
     squared, count, per_image = 0.0, 0, []
-    for prediction, reference in zip(predictions, references, strict=True):
+    relative = {"relmse": 0.0, "smape": 0.0}
+    display = {"squared": 0.0, "flip": 0.0} if all(np.ndim(r) == 3 and np.shape(r)[2] == 3 for r in references) else None
+    for index, (prediction, reference) in enumerate(zip(predictions, references, strict=True)):
         prediction, reference = np.asarray(prediction, np.float64), np.asarray(reference, np.float64)
         if prediction.shape != reference.shape:
             raise ValueError(f"prediction {prediction.shape} and reference {reference.shape} differ in shape")
@@ -76,10 +84,25 @@ def pooled(predictions: Sequence[np.ndarray], references: Sequence[np.ndarray]) 
         count += prediction.size
         mse = error / prediction.size
         per_image.append(100.0 if mse == 0 else min(100.0, -10.0 * math.log10(mse)))
+        relative["relmse"] += metrics.relmse(prediction, reference) * prediction.size
+        relative["smape"] += metrics.smape(prediction, reference) * prediction.size
+        if display is not None:
+            shown = metrics.display_metrics(prediction, reference, name=f"image {index}")
+            display["squared"] += shown["display_rmse"] ** 2 * prediction.size
+            display["flip"] += shown["flip"] * prediction.size
     rmse = math.sqrt(squared / count)
-    return {"psnr": math.inf if rmse == 0 else -20.0 * math.log10(rmse), "rmse": rmse,
-            "psnr_mean": float(np.mean(per_image)), "per_image_psnr": per_image, "images": len(per_image),
-            "pixels": count}
+    result = {"psnr": math.inf if rmse == 0 else -20.0 * math.log10(rmse), "rmse": rmse,
+              "psnr_mean": float(np.mean(per_image)), "per_image_psnr": per_image, "images": len(per_image),
+              "pixels": count, **{name: total / count for name, total in relative.items()}}
+    if display is not None:
+        result.update(_display_pooled(display["squared"] / count, display["flip"] / count))
+    return result
+
+
+def _display_pooled(mean_squared: float, flip: float) -> dict[str, float]:
+    display_rmse = math.sqrt(mean_squared)
+    return {"display_rmse": display_rmse, "display_psnr": math.inf if display_rmse == 0 else -20.0 * math.log10(display_rmse),
+            "flip": flip}
 
 
 def denoise_view(model: nn.Module, view: dict[str, np.ndarray], auxiliary: tuple[str, ...] = ("albedo",)) -> np.ndarray:
@@ -249,9 +272,16 @@ def combine(results: Sequence[dict[str, float]]) -> dict[str, float]:
     pixels = sum(r["pixels"] for r in results)
     images = sum(r["images"] for r in results)
     rmse = math.sqrt(sum(r["rmse"] ** 2 * r["pixels"] for r in results) / pixels)
-    return {"psnr": math.inf if rmse == 0 else -20.0 * math.log10(rmse), "rmse": rmse,
-            "psnr_mean": sum(r["psnr_mean"] * r["images"] for r in results) / images,
-            "images": images, "pixels": pixels}
+    combined = {"psnr": math.inf if rmse == 0 else -20.0 * math.log10(rmse), "rmse": rmse,
+                "psnr_mean": sum(r["psnr_mean"] * r["images"] for r in results) / images,
+                "images": images, "pixels": pixels}
+    for name in ("relmse", "smape"):
+        if all(name in r for r in results):
+            combined[name] = sum(r[name] * r["pixels"] for r in results) / pixels
+    if all("display_rmse" in r for r in results):
+        combined.update(_display_pooled(sum(r["display_rmse"] ** 2 * r["pixels"] for r in results) / pixels,
+                                        sum(r["flip"] * r["pixels"] for r in results) / pixels))
+    return combined
 
 
 def quality_rows(scene: str, denoising: dict[str, dict[str, float]] | None,

@@ -16,13 +16,14 @@ zero      the run's value is not 0 (whatever the baseline says)
 pass      the run's value is false
 count     the run's value differs from the baseline's
 psnr      it dropped by more than ``[gate] psnr_tolerance_db`` below the baseline
+flip      it rose by more than ``[gate] flip_tolerance`` above the baseline (lower is better)
 ratio     it dropped below ``baseline * (1 - tolerance)``, the tolerance from ``[gate]``
 ========  ==========================================================================
 
 Two kinds of baseline, in ``reports/baseline/``:
 
 ``PROFILE.json``
-    Everything that does not depend on the machine: counts, zeros, passes and the PSNRs of
+    Everything that does not depend on the machine: counts, zeros, passes and the PSNRs and FLIPs of
     the committed networks (``models/PROFILE``, evaluated, never retrained by a run). One
     file that every machine kind reads, so a deterministic number can never go stale on a
     kind nobody ran on.
@@ -255,6 +256,9 @@ def _compare_one(name: str, before: Metric, now: Metric, config: GateConfig) -> 
         floor = old - config.psnr_tolerance_db
         return verdict(f">= {floor:.2f} dB (-{config.psnr_tolerance_db} dB)", new >= floor,
                        f"dropped {old - new:.2f} dB")
+    if kind == "flip":
+        ceiling = old + config.flip_tolerance
+        return verdict(f"<= {ceiling:.4f} (+{config.flip_tolerance})", new <= ceiling, f"rose {new - old:+.4f}")
     tolerance = config.tolerance_for(name)
     floor = old * (1.0 - tolerance)
     change = new / old - 1.0 if old else math.inf
@@ -407,9 +411,10 @@ def run_gate(out_dir: str | Path, profile_name: str, config: GateConfig, directo
               f"speed ratios against `{_shown(ratio_baseline_path(profile_name, cpu, directory))}`, recorded on this "
               f"machine kind ({cpu}), tolerance {config.ratio_tolerance:.0%} unless overridden "
               f"({config.ratio_tolerances or 'no overrides'})")
-    text = (f"# Regression gate ({profile_name})\n\nMachine-independent metrics (counts, zeros, passes, PSNRs of the "
-            f"committed networks) against `{_shown(baseline_path(profile_name, directory))}`, one baseline for every "
-            f"machine kind, PSNR tolerance {config.psnr_tolerance_db} dB; {ratios}.\n\n"
+    text = (f"# Regression gate ({profile_name})\n\nMachine-independent metrics (counts, zeros, passes, PSNRs and "
+            f"FLIPs of the committed networks) against `{_shown(baseline_path(profile_name, directory))}`, one baseline "
+            f"for every machine kind, PSNR tolerance {config.psnr_tolerance_db} dB, FLIP tolerance "
+            f"+{config.flip_tolerance}; {ratios}.\n\n"
             f"{format_table(verdicts)}\n\n{summary(verdicts)}\n")
     atomic_write_bytes(Path(out_dir) / "gate.md", text.encode())
     return passed, text

@@ -12,6 +12,9 @@ Every generator of ``kdtrace report`` returns a list of :class:`Metric` and writ
 ``psnr``
     A PSNR in dB with fixed seeds, higher is better; fails when it drops by more than the
     configured dB tolerance.
+``flip``
+    A mean FLIP error in [0, 1] with fixed seeds, lower is better; fails when it rises by more
+    than the configured absolute tolerance.
 ``count``
     An integer that must equal the baseline exactly (e.g. a parameter count).
 ``zero``
@@ -33,7 +36,7 @@ from pathlib import Path
 from kdtrace.cache import atomic_write_bytes
 
 #: The kinds a metric may have (see the module docstring).
-KINDS = ("ratio", "psnr", "count", "zero", "pass")
+KINDS = ("ratio", "psnr", "flip", "count", "zero", "pass")
 
 
 @dataclasses.dataclass(frozen=True)

@@ -409,6 +409,17 @@ def _per_view_margin(noise: dict, *results: dict | None) -> float | None:
     return min(reference - max(measured) for reference, *measured in zip(noise["psnrs"], *lists, strict=True))
 
 
+def _spaces(model: dict, noisy: dict | None = None, oidn: dict | None = None) -> dict:
+    """Display-referred and HDR columns of one row: the model's, and the noisy input's and OIDN's beside them."""
+    columns = {}
+    for prefix, result in (("", model), ("noisy_", noisy), ("oidn_", oidn)):
+        for key in ("display_psnr", "flip", "relmse", "smape"):
+            columns[f"{prefix}{key}"] = None if result is None else result.get(key)
+    if columns["oidn_display_psnr"] is not None and columns["display_psnr"] is not None:
+        columns["minus_oidn_display"] = columns["display_psnr"] - columns["oidn_display_psnr"]
+    return columns
+
+
 def _test_columns(quality: dict, model_test: dict) -> dict:
     """Table 2's test-view columns of one row: the model, the noisy input, OIDN and the references' noise.
 
@@ -421,7 +432,8 @@ def _test_columns(quality: dict, model_test: dict) -> dict:
     test, noise = quality["ours"]["test"], quality.get("reference_noise", {})
     psnr, noisy, oidn = model_test["psnr"], test["noisy"]["psnr"], test.get("oidn", {}).get("psnr")
     best = max(p for p in (psnr, oidn, noisy) if p is not None)
-    return {"test_psnr": psnr, "test_rmse": model_test["rmse"], "noisy_test_psnr": noisy,
+    return {**_spaces(model_test, test["noisy"], test.get("oidn")),
+            "test_psnr": psnr, "test_rmse": model_test["rmse"], "noisy_test_psnr": noisy,
             "gain_over_noisy": psnr - noisy, "oidn_test_psnr": oidn, "minus_oidn": None if oidn is None else psnr - oidn,
             "reference_psnr_lowest": noise.get("lowest_psnr"),
             "reference_margin_db": None if not noise else noise["lowest_psnr"] - best,
@@ -455,12 +467,12 @@ def _table2(m: dict) -> list[dict]:
 
     pooled = {split: combine([m["quality"][n]["mixed"][split] for n in m["scenes"]]) for split in ("train", "validation", "test")}
     per_scene = combine([m["quality"][n]["ours"]["test"]["ours"] for n in m["scenes"]])
-    rows.append({"scene": "all scenes", "model": "mixed", "train_psnr": pooled["train"]["psnr"],
+    rows.append({"scene": "all scenes", "model": "mixed", **_spaces(pooled["test"]), "train_psnr": pooled["train"]["psnr"],
                  "validation_psnr": pooled["validation"]["psnr"], "test_psnr": pooled["test"]["psnr"],
                  "test_rmse": pooled["test"]["rmse"], "test_views": pooled["test"]["images"],
                  "paper_test_psnr": TABLE2["mixed"]["test_psnr"], "paper_test_rmse": TABLE2["mixed"]["test_rmse"],
                  "model_source": _reused(m["stages"], "mixed denoiser")})
-    rows.append({"scene": "all scenes", "model": "per-scene", "train_psnr": None, "validation_psnr": None,
+    rows.append({"scene": "all scenes", "model": "per-scene", **_spaces(per_scene), "train_psnr": None, "validation_psnr": None,
                  "test_psnr": per_scene["psnr"], "test_rmse": per_scene["rmse"], "test_views": per_scene["images"],
                  "paper_test_psnr": None, "paper_test_rmse": None, "model_source": "each scene's own model"})
     return rows + _table2_plugins(m)
@@ -479,7 +491,8 @@ def _table2_plugins(m: dict) -> list[dict]:
                 rows.append({"scene": name, "model": f"plug-in {spec}", "model_source": result["failed"]})
                 continue
             psnr = result["test"]["psnr"]
-            rows.append({"scene": name, "model": f"plug-in {spec}", "test_psnr": psnr, "test_rmse": result["test"]["rmse"],
+            rows.append({"scene": name, "model": f"plug-in {spec}", **_spaces(result["test"], test["noisy"], test.get("oidn")),
+                         "test_psnr": psnr, "test_rmse": result["test"]["rmse"],
                          "noisy_test_psnr": test["noisy"]["psnr"], "gain_over_noisy": psnr - test["noisy"]["psnr"],
                          "oidn_test_psnr": oidn, "minus_oidn": None if oidn is None else psnr - oidn,
                          "test_views": result["views"], "model_source": "plug-in"})
@@ -494,7 +507,10 @@ def _table3(m: dict) -> list[dict]:
     rows = []
     for name in m["scenes"]:
         q, paper = m["quality"][name], TABLE3.get(name, {})
-        rows.append({"scene": name, "views": f"test ({q['views']['test']})", "mixed_psnr": q["mixed"]["test"]["psnr"],
+        rows.append({"scene": name, "views": f"test ({q['views']['test']})",
+                     **_spaces(q["mixed"]["test"], q["ours"]["test"]["noisy"], q["ours"]["test"].get("oidn")),
+                     "per_scene_display_psnr": q["ours"]["test"]["ours"].get("display_psnr"),
+                     "mixed_psnr": q["mixed"]["test"]["psnr"],
                      "mixed_rmse": q["mixed"]["test"]["rmse"],
                      "mixed_pixels_beyond_input": q["mixed"]["test"].get("beyond_input"),
                      "per_scene_psnr": q["ours"]["test"]["ours"]["psnr"],
@@ -506,6 +522,7 @@ def _table3(m: dict) -> list[dict]:
     if m["unseen_quality"]:
         u, paper = m["unseen_quality"], TABLE3["unseen"]
         rows.append({"scene": f"{m['unseen']} (never seen)", "views": f"all ({u['views']})",
+                     **_spaces(u["ours"], u["noisy"], u.get("oidn")),
                      "mixed_psnr": u["ours"]["psnr"], "mixed_rmse": u["ours"]["rmse"],
                      "mixed_pixels_beyond_input": u["ours"].get("beyond_input"), "per_scene_psnr": None,
                      "psnr_difference": None, "noisy_psnr": u["noisy"]["psnr"],
@@ -515,6 +532,7 @@ def _table3(m: dict) -> list[dict]:
     if m.get("far_quality"):
         u = m["far_quality"]
         rows.append({"scene": f"{m['far']} (never seen, far)", "views": f"all ({u['views']})",
+                     **_spaces(u["ours"], u["noisy"], u.get("oidn")),
                      "mixed_psnr": u["ours"]["psnr"], "mixed_rmse": u["ours"]["rmse"],
                      "mixed_pixels_beyond_input": u["ours"].get("beyond_input"), "per_scene_psnr": None,
                      "psnr_difference": None, "noisy_psnr": u["noisy"]["psnr"],
@@ -525,9 +543,11 @@ def _table3(m: dict) -> list[dict]:
 
 def _sr_row(label: str, split: str, results: dict, paper: dict | None = None) -> dict:
     return {"data": label, "split": split, "images": results["ours"]["images"],
-            **{f"{method}_{key}": results[method][key] for method in ("bicubic", "lanczos", "ours")
-               for key in ("psnr", "rmse")},
+            **{f"{method}_{key}": results[method].get(key) for method in ("bicubic", "lanczos", "ours")
+               for key in ("psnr", "rmse", "display_psnr", "flip")},
             "gain_over_bicubic": results["ours"]["psnr"] - results["bicubic"]["psnr"],
+            "display_gain_over_bicubic": (None if results["ours"].get("display_psnr") is None
+                                          else results["ours"]["display_psnr"] - results["bicubic"]["display_psnr"]),
             "paper_psnr": (paper or {}).get(f"{split}_psnr"), "paper_rmse": (paper or {}).get(f"{split}_rmse")}
 
 
@@ -583,23 +603,31 @@ def _quality(m: dict) -> list[dict]:
     for name in m["scenes"]:
         q = m["quality"][name]
         test = q["ours"]["test"]
-        rows.append({"scene": name, "noisy": test["noisy"]["psnr"], "ours": test["ours"]["psnr"],
-                     "mixed": q["mixed"]["test"]["psnr"], "oidn": test.get("oidn", {}).get("psnr"),
+        rows.append({"scene": name, "noisy_display": test["noisy"].get("display_psnr"),
+                     "ours_display": test["ours"].get("display_psnr"), "mixed_display": q["mixed"]["test"].get("display_psnr"),
+                     "oidn_display": test.get("oidn", {}).get("display_psnr"),
                      "paper_ours": TABLE2.get(name, {}).get("test_psnr"),
                      "paper_mixed": TABLE3.get(name, {}).get("test_psnr"),
+                     "bicubic_display": q["superres"]["bicubic"].get("display_psnr"),
+                     "ours_superres_display": q["superres"]["ours"].get("display_psnr"),
+                     "noisy": test["noisy"]["psnr"], "ours": test["ours"]["psnr"],
+                     "mixed": q["mixed"]["test"]["psnr"], "oidn": test.get("oidn", {}).get("psnr"),
                      "bicubic": q["superres"]["bicubic"]["psnr"], "lanczos": q["superres"]["lanczos"]["psnr"],
                      "ours_superres": q["superres"]["ours"]["psnr"]})
     if m["unseen_quality"]:
         u = m["unseen_quality"]
-        rows.append({"scene": f"{m['unseen']} (never seen)", "noisy": u["noisy"]["psnr"], "ours": None,
-                     "mixed": u["ours"]["psnr"], "oidn": u.get("oidn", {}).get("psnr"), "paper_ours": None,
-                     "paper_mixed": TABLE3["unseen"]["test_psnr"], "bicubic": None, "lanczos": None,
-                     "ours_superres": None})
+        rows.append({"scene": f"{m['unseen']} (never seen)", "noisy_display": u["noisy"].get("display_psnr"),
+                     "mixed_display": u["ours"].get("display_psnr"), "oidn_display": u.get("oidn", {}).get("display_psnr"),
+                     "paper_mixed": TABLE3["unseen"]["test_psnr"], "noisy": u["noisy"]["psnr"],
+                     "mixed": u["ours"]["psnr"], "oidn": u.get("oidn", {}).get("psnr")})
     return rows
 
 
 def _cell(column: str, value: Any) -> str:
-    """A table cell: seconds (``*_s``) with 4 decimals, RMSE with 4, other floats with 2."""
+    """A table cell: seconds (``*_s``) with 4 decimals, RMSE with 4, relMSE and SMAPE with 3 significant digits,
+    other floats with 2."""
+    if isinstance(value, float) and ("relmse" in column or "smape" in column) and math.isfinite(value):
+        return f"{value:.3g}"
     if isinstance(value, float):
         return _f(value, 4 if column.endswith("_s") or "rmse" in column else 2)
     return "" if value is None else str(value)
@@ -611,9 +639,95 @@ def _markdown(rows: list[dict], scene_columns: tuple[str, ...] = ("scene",)) -> 
     return tabulate(shown, headers="keys", tablefmt="github", disable_numparse=True)
 
 
+def _flips(row: dict, *keys: str) -> str:
+    """FLIP values of one row as ``a / b / c`` (3 decimals; ``-`` where not measured)."""
+    values = [row.get(key) for key in keys]
+    return "" if all(v is None for v in values) else " / ".join("-" if v is None else f"{v:.3f}" for v in values)
+
+
+#: A compact view of a table: (heading, [(column or callable, header)]); the CSV keeps every column.
+View = tuple[str, list[tuple[Any, str]]]
+
+_DISPLAY = ("Display-referred (the paper's space: each view exposed so that its reference's 99th-percentile "
+            "luminance is white, clipped, sRGB); PSNR in dB, FLIP lower is better")
+_LINEAR = "Linear radiance clipped to [0, 1] (PSNR dB) and HDR (relMSE, unclipped)"
+
+_VIEWS: dict[str, list[View]] = {
+    "table2": [
+        (_DISPLAY, [("scene", "scene"), ("model", "model"), ("paper_test_psnr", "paper PSNR"),
+                    ("noisy_display_psnr", "noisy"), ("display_psnr", "ours"), ("oidn_display_psnr", "OIDN"),
+                    ("minus_oidn_display", "ours − OIDN"),
+                    (lambda r: _flips(r, "noisy_flip", "flip", "oidn_flip"), "FLIP noisy / ours / OIDN")]),
+        (_LINEAR, [("scene", "scene"), ("model", "model"), ("noisy_test_psnr", "noisy"), ("test_psnr", "ours"),
+                   ("oidn_test_psnr", "OIDN"), ("relmse", "relMSE ours"), ("oidn_relmse", "relMSE OIDN"),
+                   ("reference_margin_per_view_db", "reference margin per view (dB)")]),
+        ("Splits, references and models (linear PSNR, dB)",
+         [("scene", "scene"), ("model", "model"), ("train_psnr", "train"), ("validation_psnr", "validation"),
+          ("test_views", "test views"), ("test_reference_spp", "reference spp"), ("model_source", "trained")]),
+    ],
+    "table3": [
+        (_DISPLAY, [("scene", "scene"), ("views", "views"), ("paper_mixed_psnr", "paper mixed PSNR"),
+                    ("noisy_display_psnr", "noisy"), ("display_psnr", "mixed"), ("per_scene_display_psnr", "per-scene"),
+                    ("oidn_display_psnr", "OIDN"), (lambda r: _flips(r, "noisy_flip", "flip", "oidn_flip"),
+                                                    "FLIP noisy / mixed / OIDN")]),
+        (_LINEAR, [("scene", "scene"), ("noisy_psnr", "noisy"), ("mixed_psnr", "mixed"), ("per_scene_psnr", "per-scene"),
+                   ("oidn_psnr", "OIDN"), ("relmse", "relMSE mixed"),
+                   ("mixed_pixels_beyond_input", "mixed pixels beyond input")]),
+    ],
+    "table5": [
+        (_DISPLAY, [("data", "data"), ("split", "split"), ("images", "images"), ("paper_psnr", "paper PSNR"),
+                    ("bicubic_display_psnr", "bicubic"), ("lanczos_display_psnr", "Lanczos"), ("ours_display_psnr", "ours"),
+                    ("display_gain_over_bicubic", "ours − bicubic")]),
+        (_LINEAR, [("data", "data"), ("split", "split"), ("bicubic_psnr", "bicubic"), ("lanczos_psnr", "Lanczos"),
+                   ("ours_psnr", "ours"), ("gain_over_bicubic", "ours − bicubic")]),
+    ],
+    "table6": [
+        ("Denoising one frame (seconds; only the ratio compares across machines)",
+         [("scene", "scene"), ("frame", "frame"), ("denoise_option", "mode"), ("ours_denoise_s", "ours s"),
+          ("oidn_s", "OIDN s"), ("oidn_over_ours", "OIDN / ours"), ("paper_denoise_s", "paper s")]),
+        ("Superresolution 2x of one frame (seconds)",
+         [("scene", "scene"), ("superres_output", "output"), ("superres_option", "mode"), ("ours_superres_s", "ours s"),
+          ("bicubic_s", "bicubic s"), ("bicubic_over_ours", "bicubic / ours"), ("paper_superres_s", "paper s")]),
+        ("What was timed, checked (linear PSNR in dB against the frame's reference) and the arithmetic",
+         [("scene", "scene"), ("noisy_psnr", "noisy"), ("ours_psnr", "ours"), ("oidn_psnr", "OIDN"),
+          ("superres_gflops", "SR GFLOP/s"), ("matmul_gflops", "matmul GFLOP/s"), ("threads", "threads")]),
+    ],
+    "quality": [
+        (_DISPLAY + "; the paper's PSNRs are of its display images",
+         [("scene", "scene"), ("paper_ours", "paper per-scene"), ("noisy_display", "noisy"), ("ours_display", "ours"),
+          ("mixed_display", "mixed"), ("paper_mixed", "paper mixed"), ("oidn_display", "OIDN"),
+          ("ours_superres_display", "SR ours (bicubic)")]),
+    ],
+}
+
+
+def _view_markdown(rows: list[dict], columns: list[tuple[Any, str]], scene_columns: tuple[str, ...]) -> str:
+    shown = []
+    for row in rows:
+        cells = {}
+        for column, header in columns:
+            if callable(column):
+                cells[header] = column(row)
+            elif column in scene_columns and isinstance(row.get(column), str):
+                cells[header] = _paper_name(row[column])
+            else:
+                cells[header] = _cell(column, row.get(column))
+        if any(list(cells.values())[2:]):  # a row with nothing measured in this view is left out of it
+            shown.append(cells)
+    return tabulate(shown, headers="keys", tablefmt="github", disable_numparse=True)
+
+
+def _views_markdown(stem: str, rows: list[dict], scene_columns: tuple[str, ...], csv_name: str) -> str:
+    """Every compact view of a table, each under its heading, and where the full table is."""
+    parts = [f"### {heading}\n\n{_view_markdown(rows, columns, scene_columns)}" for heading, columns in _VIEWS[stem]]
+    return "\n\n".join(parts) + f"\n\nEvery column, both spaces: [{csv_name}]({csv_name}).\n"
+
+
 _TITLES = {
     "table2": ("Table 2 — denoiser quality per scene (per-scene and mixed models)",
-               "PSNR (dB) and RMSE pooled over whole views of each split, linear images clipped to [0, 1]. "
+               "Metrics pooled over whole views of each split, in two spaces (reconstruction/metrics.py): "
+               "display-referred, the space of the paper's PSNRs and of what a person sees, and linear radiance "
+               "clipped to [0, 1] with HDR relMSE beside it. "
                "`all scenes`: pooled over every scene's views (the paper's Mixed row is the mixed model on its own "
                "test set). Paper figures beside ours where the paper has the scene. `per-scene +normal+depth` "
                "(profile `variant_scenes`): the documented variant fed albedo, normal and depth ({variant_parameters} "
@@ -705,7 +819,7 @@ def write_outputs(m: dict, config: Config, out_dir: Path) -> dict[str, pd.DataFr
     for stem, rows in tables.items():
         frames[stem] = pd.DataFrame(rows)
         scene_columns = ("scene", "data")
-        text = _header(stem, m, provenance, reconstruction) + _markdown(rows, scene_columns) + "\n"
+        text = _header(stem, m, provenance, reconstruction) + _views_markdown(stem, rows, scene_columns, f"{stem}.csv")
         if stem == "table6" and m.get("plugin_denoisers"):
             plugins = _table6_plugins(m)
             text += ("\n## Plug-in denoisers\n\nEach plug-in (`kdtrace report --denoiser SPEC`) on the same frame: "
@@ -766,6 +880,10 @@ def metrics_of(m: dict) -> list[Metric]:
                        "mixed denoiser, this scene's test views, dB"),
                 Metric(f"table5/{name}/ours_test_psnr", "psnr", q["superres"]["ours"]["psnr"],
                        "superresolution 2x, test views, dB")]
+        out += _display_metrics(f"table2/{name}/ours", q["ours"]["test"]["ours"], "per-scene denoiser, test views")
+        out += _display_metrics(f"table2/{name}/mixed", q["mixed"]["test"], "mixed denoiser, this scene's test views")
+        out += _display_metrics(f"table5/{name}/ours", q["superres"]["ours"], "superresolution 2x, test views",
+                                with_flip=False)
         for variant in (v for v in DENOISER_VARIANTS if v.key in q):
             out.append(Metric(f"table2/{name}/{variant.key}_test_psnr", "psnr", q[variant.key]["test"]["psnr"],
                               f"per-scene {variant.label} variant, test views, dB"))
@@ -777,12 +895,26 @@ def metrics_of(m: dict) -> list[Metric]:
     if m["unseen_quality"]:
         out.append(Metric(f"table3/{m['unseen']}/mixed_psnr", "psnr", m["unseen_quality"]["ours"]["psnr"],
                           "mixed denoiser on the never-seen scene, all views, dB"))
+        out += _display_metrics(f"table3/{m['unseen']}/mixed", m["unseen_quality"]["ours"],
+                                "mixed denoiser on the never-seen scene, all views")
     if m.get("far_quality"):
         out.append(Metric(f"table3/{m['far']}/mixed_psnr", "psnr", m["far_quality"]["ours"]["psnr"],
                           "mixed denoiser on the far never-seen scene, all views, dB"))
     out.append(Metric("table5/photos/ours_test_psnr", "psnr", m["photos"]["test"]["ours"]["psnr"],
                       "superresolution 2x, held-out photos, dB"))
+    out += _display_metrics("table5/photos/ours", m["photos"]["test"]["ours"], "superresolution 2x, held-out photos",
+                            with_flip=False)
     return out + plugin_metrics(m)
+
+
+def _display_metrics(prefix: str, result: dict, what: str, with_flip: bool = True) -> list[Metric]:
+    """``PREFIX_display_psnr`` (and ``PREFIX_flip``) of one pooled result, where it has them."""
+    out = []
+    if math.isfinite(result.get("display_psnr", math.nan)):
+        out.append(Metric(f"{prefix}_display_psnr", "psnr", result["display_psnr"], f"{what}, display-referred dB"))
+    if with_flip and "flip" in result:
+        out.append(Metric(f"{prefix}_flip", "flip", result["flip"], f"{what}, mean LDR-FLIP of the displayed images"))
+    return out
 
 
 def plugin_metrics(m: dict) -> list[Metric]:

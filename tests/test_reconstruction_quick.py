@@ -132,10 +132,25 @@ def test_main_quality_reuses_the_models_and_writes_the_table(trained, tmp_path):
 def test_pooled_psnr_is_not_the_mean_of_per_image_psnrs():
     import numpy as np
 
-    flat, busy = np.zeros((4, 4, 3)), np.zeros((4, 4, 3))
+    flat, busy = np.full((4, 4, 3), 0.5), np.full((4, 4, 3), 0.25)
     metrics = evaluate.pooled([flat + 1e-4, busy + 0.1], [flat, busy])
     assert metrics["psnr"] == pytest.approx(-10 * np.log10((1e-8 + 0.01) / 2))
     assert metrics["psnr_mean"] == pytest.approx((80.0 + 20.0) / 2)
+    # display-referred: each view tonemapped with its own reference's exposure, then pooled the same way
+    from reconstruction import metrics as image_metrics
+
+    rng = np.random.default_rng(0)
+    references = [rng.uniform(0.01, 0.2, (8, 8, 3)), rng.uniform(0.5, 3.0, (8, 8, 3))]
+    predictions = [reference * rng.uniform(0.8, 1.2, reference.shape) for reference in references]
+    views = [image_metrics.display_metrics(p, r) for p, r in zip(predictions, references, strict=True)]
+    both = evaluate.pooled(predictions, references)
+    assert both["display_rmse"] == pytest.approx(np.sqrt(np.mean([v["display_rmse"] ** 2 for v in views])))
+    assert both["flip"] == pytest.approx(np.mean([v["flip"] for v in views]))
+    assert both["relmse"] == pytest.approx(np.mean([image_metrics.relmse(p, r) for p, r in zip(predictions, references, strict=True)]))
+    # and combine() of the parts is pooled() of the whole
+    parts = evaluate.combine([evaluate.pooled(predictions[:1], references[:1]), evaluate.pooled(predictions[1:], references[1:])])
+    for name in ("psnr", "display_psnr", "flip", "relmse", "smape"):
+        assert parts[name] == pytest.approx(both[name])
     with pytest.raises(ValueError):
         evaluate.pooled([], [])
 

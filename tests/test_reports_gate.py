@@ -12,7 +12,7 @@ from kdtrace.provenance import isa_tier
 from reports import gate
 from reports.metrics import Metric, write_metrics
 
-CONFIG = GateConfig(ratio_tolerance=0.3, ratio_tolerances={"t/*/paired": 0.1}, psnr_tolerance_db=0.1)
+CONFIG = GateConfig(ratio_tolerance=0.3, ratio_tolerances={"t/*/paired": 0.1}, psnr_tolerance_db=0.1, flip_tolerance=0.002)
 
 
 def _metrics(*entries: tuple) -> dict[str, Metric]:
@@ -23,6 +23,7 @@ BASELINE = _metrics(
     ("t/a/speed", "ratio", 2.0),
     ("t/a/paired", "ratio", 1.0),
     ("t/a/psnr", "psnr", 30.0),
+    ("t/a/flip", "flip", 0.05),
     ("t/a/refs", "count", 1000),
     ("t/a/unexplained", "zero", 0),
     ("t/a/ztest", "pass", True),
@@ -53,6 +54,9 @@ def test_identical_run_passes():
     ("t/a/paired", 0.89, True),
     ("t/a/psnr", 29.91, False),   # -0.09 dB
     ("t/a/psnr", 29.89, True),    # -0.11 dB
+    ("t/a/flip", 0.0519, False),  # +0.0019: inside the default +0.002
+    ("t/a/flip", 0.0521, True),
+    ("t/a/flip", 0.01, False),    # lower is better
     ("t/a/refs", 1001, True),     # counts must match exactly, either way
     ("t/a/refs", 999, True),
     ("t/a/unexplained", 1, True),
@@ -124,9 +128,9 @@ def test_run_gate_and_update_baseline_round_trip(tmp_path, on_kind):
     write_metrics(out, "t", BASELINE.values())
     paths, note = gate.update_baseline(out, "quick", directory=tmp_path)
     shared, ratios = tmp_path / "quick.json", tmp_path / "quick.ratios.intel-r-xeon-r-processor-avx512-bf16.json"
-    assert paths == [shared, ratios] and "4 added" in note and "2 added" in note
+    assert paths == [shared, ratios] and "5 added" in note and "2 added" in note
     # the deterministic metrics in the shared file, the speed ratios in the kind's own
-    assert {m.kind for m in gate.read_baseline(shared).values()} == {"psnr", "count", "zero", "pass"}
+    assert {m.kind for m in gate.read_baseline(shared).values()} == {"psnr", "flip", "count", "zero", "pass"}
     assert set(gate.read_baseline(ratios)) == {"t/a/speed", "t/a/paired"} and gate.baseline_cpu(ratios) == XEON
     text = shared.read_text()
     assert json.loads(text)["profile"] == "quick" and "cpu" not in json.loads(text)
@@ -149,7 +153,7 @@ def test_a_planted_regression_in_a_count_a_psnr_and_a_ratio_each_fails_the_gate(
     write_metrics(out, "t", BASELINE.values())
     gate.update_baseline(out, "quick", directory=tmp_path)
     for name, value, reason in (("t/a/refs", 999, "changed by -1"), ("t/a/psnr", 29.5, "dropped 0.50 dB"),
-                                ("t/a/speed", 1.0, "dropped 50%")):
+                                ("t/a/flip", 0.06, "rose +0.0100"), ("t/a/speed", 1.0, "dropped 50%")):
         write_metrics(out, "t", _changed(name, value).values())
         passed, report = gate.run_gate(out, "quick", CONFIG, directory=tmp_path)
         assert not passed and f"FAIL: {reason}" in report and "1 failed" in report
@@ -177,7 +181,7 @@ def test_every_kind_reads_one_deterministic_baseline_and_only_its_own_ratios(tmp
     xeon_ratios = (tmp_path / "quick.ratios.intel-r-xeon-r-processor-avx512-bf16.json").read_text()
     paths, note = gate.update_baseline(out, "quick", directory=tmp_path)
     assert paths[1] == tmp_path / "quick.ratios.amd-epyc-avx2.json" and "(new baseline)" in note
-    assert "quick.json: 4 metrics; 0 added, 0 removed, 0 changed" in note
+    assert "quick.json: 5 metrics; 0 added, 0 removed, 0 changed" in note
     assert (tmp_path / "quick.ratios.intel-r-xeon-r-processor-avx512-bf16.json").read_text() == xeon_ratios
     passed, report = gate.run_gate(out, "quick", CONFIG, directory=tmp_path)
     assert passed and "quick.ratios.amd-epyc-avx2.json" in report and "0 not gated" in report

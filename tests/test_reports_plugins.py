@@ -106,7 +106,9 @@ class _Views:
 
 
 def _pooled(psnr: float) -> dict[str, float]:
-    return {"psnr": psnr, "rmse": 10 ** (-psnr / 20), "psnr_mean": psnr, "images": 2, "pixels": 2 * SIZE * SIZE * 3}
+    return {"psnr": psnr, "rmse": 10 ** (-psnr / 20), "psnr_mean": psnr, "images": 2, "pixels": 2 * SIZE * SIZE * 3,
+            "display_psnr": psnr - 6, "display_rmse": 10 ** (-(psnr - 6) / 20), "flip": 1.0 / psnr,
+            "relmse": 10 ** (-psnr / 10), "smape": 0.1, "beyond_input": 0}
 
 
 def _reconstruction_stand_in(config, profile_name, fresh, progress, denoisers=()):
@@ -253,8 +255,8 @@ def test_report_puts_plugins_through_every_part(shared_scenes, isolated_cache, t
     assert bad_tri in index and bad_dtype in index
     assert json.loads((out / "provenance.json").read_text())["plugins"]["denoisers"] == [BILATERAL, BROKEN_DENOISER]
     monkeypatch.setattr(gate, "BASELINE_DIR", tmp_path / "baseline")
-    path, _ = gate.update_baseline(out, "tiny")
-    stored = gate.read_baseline(path)
+    paths, _ = gate.update_baseline(out, "tiny")
+    stored = {name: metric for path in paths for name, metric in gate.read_baseline(path).items()}
     assert f"table1/{SCENE}/wrong_hits" in stored and not any(is_plugin_metric(name) for name in stored)
     assert any(is_plugin_metric(name) for name in metrics)
 
