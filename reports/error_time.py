@@ -87,7 +87,7 @@ from reports.notes import ReportNote
 from reports.paper_figures import ACCEPTABLE_PSNR
 
 #: Bump when what a row measures changes: cached rows become stale.
-ROW_VERSION = 4
+ROW_VERSION = 5
 #: Every time is the shortest of this many runs.
 TIMING_REPEATS = 3
 #: The methods, in table order, with their labels.
@@ -140,6 +140,10 @@ def denoising_methods(methods: Sequence[str]) -> list[str]:
 PSNR_THRESHOLDS = (ACCEPTABLE_PSNR, 35.0)
 #: relMSE thresholds of the equal-error table.
 RELMSE_THRESHOLDS = (1e-2, 1e-3)
+#: Display-referred PSNR thresholds (dB) of the equal-error table (the space of the paper's 30 dB).
+DISPLAY_PSNR_THRESHOLDS = (ACCEPTABLE_PSNR, 35.0)
+#: The error columns of a point, and whether higher is better: linear PSNR, HDR relMSE, display PSNR, FLIP.
+ERRORS = {"psnr": True, "relmse": False, "display_psnr": True, "flip": False}
 #: ε of relMSE (as :data:`reconstruction.metrics.RELMSE_EPSILON`).
 RELMSE_EPSILON = 0.01
 
@@ -314,39 +318,48 @@ def equal_time_table(points: pd.DataFrame, grid: Sequence[float]) -> pd.DataFram
 
 
 def equal_error_table(points: pd.DataFrame, psnr_thresholds: Sequence[float] = PSNR_THRESHOLDS,
-                      relmse_thresholds: Sequence[float] = RELMSE_THRESHOLDS) -> dict[str, dict[str, Reach]]:
-    """Per method, the :class:`Reach` of every threshold (keys ``"PSNR 30 dB"``, ``"relMSE 0.01"``)."""
+                      relmse_thresholds: Sequence[float] = RELMSE_THRESHOLDS,
+                      display_thresholds: Sequence[float] = DISPLAY_PSNR_THRESHOLDS) -> dict[str, dict[str, Reach]]:
+    """Per method, the :class:`Reach` of every threshold (keys ``"display 30 dB"``, ``"linear 30 dB"``,
+    ``"relMSE 0.01"``); display thresholds only where the points have display PSNRs."""
     table: dict[str, dict[str, Reach]] = {}
     for method, group in points.groupby("method", sort=False):
         cells = {}
+        if _measured(group, "display_psnr", method):
+            for threshold in display_thresholds:
+                cells[f"display {threshold:g} dB"] = seconds_to_reach(group["seconds"], group["display_psnr"], threshold,
+                                                                      True)
         for threshold in psnr_thresholds:
-            cells[f"PSNR {threshold:g} dB"] = seconds_to_reach(group["seconds"], group["psnr"], threshold, True)
+            cells[f"linear {threshold:g} dB"] = seconds_to_reach(group["seconds"], group["psnr"], threshold, True)
         for threshold in relmse_thresholds:
             cells[f"relMSE {threshold:g}"] = seconds_to_reach(group["seconds"], group["relmse"], threshold, False)
         table[method] = cells
     return table
 
 
-def headline(points: pd.DataFrame, spp: int, pipeline: str, reference: str = "mitsuba") -> dict[str, Any]:
-    """Speed-up of ``pipeline`` at ``spp`` over ``reference`` at the same PSNR.
+def headline(points: pd.DataFrame, spp: int, pipeline: str, reference: str = "mitsuba",
+             error: str = "psnr") -> dict[str, Any]:
+    """Speed-up of ``pipeline`` at ``spp`` over ``reference`` at the same error.
 
-    The pipeline's PSNR at ``spp`` is the target; the reference's seconds to reach it
-    come from :func:`seconds_to_reach` on its curve.
+    The pipeline's ``error`` (a key of :data:`ERRORS`: ``psnr``, ``display_psnr``, ``relmse``,
+    ``flip``) at ``spp`` is the target; the reference's seconds to reach it come from
+    :func:`seconds_to_reach` on its curve.
 
     Returns
     -------
     dict
-        ``psnr`` and ``seconds`` of the pipeline point, the reference's :class:`Reach`,
-        and ``speedup`` (a table cell from :func:`speedup_cell`).
+        ``value`` (the pipeline's error; also as ``psnr`` for the PSNRs) and ``seconds`` of the
+        pipeline point, the reference's :class:`Reach`, and ``speedup`` (a cell of :func:`speedup_cell`).
     """
     ours = points[(points["method"] == pipeline) & (points["spp"] == spp)]
     if len(ours) != 1:
         raise ValueError(f"need exactly one {pipeline} point at {spp} spp, found {len(ours)}")
     ours = ours.iloc[0]
     theirs = points[points["method"] == reference]
-    reach = seconds_to_reach(theirs["seconds"], theirs["psnr"], float(ours["psnr"]), higher_is_better=True)
+    reach = seconds_to_reach(theirs["seconds"], theirs[error], float(ours[error]), higher_is_better=ERRORS[error])
     cell = speedup_cell(reach, Reach(float(ours["seconds"]), "exact"), float(theirs["seconds"].max()))
-    return {"psnr": float(ours["psnr"]), "seconds": float(ours["seconds"]), "reference": reach, "speedup": cell}
+    return {"value": float(ours[error]), "psnr": float(ours[error]), "seconds": float(ours["seconds"]),
+            "reference": reach, "speedup": cell}
 
 
 # ------------------------------------------------------------------ measuring
@@ -450,10 +463,14 @@ def timed_reconstruction(steps: Sequence[Callable[[Any], Any]], frame: Any, repe
 
 
 def errors(image: np.ndarray, reference: np.ndarray) -> dict[str, float]:
-    """``psnr`` (dB, clipped to [0, 1]) and ``relmse`` (HDR) of ``image`` against ``reference``."""
-    from reconstruction.metrics import psnr, relmse
+    """The :data:`ERRORS` of ``image`` against ``reference``: ``psnr`` (dB, linear clipped to [0, 1]),
+    ``relmse`` (HDR), ``display_psnr`` (dB) and ``flip`` of the displayed images (the reference's
+    exposure, :func:`reconstruction.metrics.display_metrics`)."""
+    from reconstruction.metrics import display_metrics, psnr, relmse
 
-    return {"psnr": psnr(image, reference), "relmse": relmse(image, reference)}
+    shown = display_metrics(image, reference, name="the sweep's reference")
+    return {"psnr": psnr(image, reference), "relmse": relmse(image, reference), "display_psnr": shown["display_psnr"],
+            "flip": shown["flip"]}
 
 
 def reference_floor(reference) -> dict[str, float]:
@@ -531,14 +548,14 @@ class AuxFrame:
 
 def _point(method: str, spp: int, width: int, height: int, render_seconds: float,
            reconstruction_seconds: Sequence[float], image: np.ndarray, reference: np.ndarray,
-           input_psnr: float | None = None, **extra: float) -> dict[str, Any]:
-    """One measured point; a reconstruction's also records its noisy input's PSNR (``input_psnr``)."""
+           input_errors: dict[str, float] | None = None, **extra: float) -> dict[str, Any]:
+    """One measured point; a reconstruction's also records its noisy input's :func:`errors` (``input_psnr``, ...)."""
     point = {"method": method, "spp": int(spp), "width": int(width), "height": int(height),
              "paths": int(width * height * spp), "render_seconds": float(render_seconds),
              "reconstruction_seconds": float(sum(reconstruction_seconds)),
              "seconds": float(render_seconds + sum(reconstruction_seconds)), **errors(image, reference)}
-    if input_psnr is not None:
-        point["input_psnr"] = float(input_psnr)
+    for key, value in (input_errors or {}).items():
+        point[f"input_{key}"] = float(value)
     return {**point, **{key: float(value) for key, value in extra.items()}}
 
 
@@ -616,35 +633,35 @@ def measure_scene(name: str, config: Config, profile_name: str, models: Reconstr
             points.append(_point("mitsuba", spp, width, height, seconds, [], image, reference.rgb))
 
             frame, frame_seconds = ours(spp, width, height, aux=True)
-            frame_psnr = errors(frame.rgb, reference.rgb)["psnr"]
+            frame_errors = errors(frame.rgb, reference.rgb)
             denoised, steps = timed_reconstruction([lambda f: denoise_frame(denoiser, f)], frame)
             points.append(_point("kdtrace+denoiser", spp, width, height, frame_seconds, steps, denoised, reference.rgb,
-                                 frame_psnr))
+                                 frame_errors))
             if name in models.blends:
                 image, blend_seconds, blend_steps, weight, cap = blended(models.blends[name], denoiser, spp, frame,
                                                                          denoised, steps, frame_seconds)
                 points.append(_point("kdtrace+denoiser-blend", spp, width, height, blend_seconds, blend_steps, image,
-                                     reference.rgb, frame_psnr, weight=weight, frame_cap=cap))
+                                     reference.rgb, frame_errors, weight=weight, frame_cap=cap))
             image, steps = timed_reconstruction([lambda f: oidn(f.rgb, f.albedo, f.normal)], frame)
             points.append(_point("kdtrace+oidn", spp, width, height, frame_seconds, steps, image, reference.rgb,
-                                 frame_psnr))
+                                 frame_errors))
 
             buffers, mitsuba_seconds = mitsuba.render(spp, mitsuba_seed(profile.seed, spp), aov=True)
             mitsuba_frame = AuxFrame(buffers[..., :3], buffers[..., 3:6], buffers[..., 6:9])
-            mitsuba_psnr = errors(mitsuba_frame.rgb, reference.rgb)["psnr"]
+            mitsuba_errors = errors(mitsuba_frame.rgb, reference.rgb)
             image, steps = timed_reconstruction([lambda f: denoise_frame(denoiser, f)], mitsuba_frame)
             points.append(_point("mitsuba+denoiser", spp, width, height, mitsuba_seconds, steps, image, reference.rgb,
-                                 mitsuba_psnr))
+                                 mitsuba_errors))
             image, steps = timed_reconstruction([lambda f: oidn(f.rgb, f.albedo, f.normal)], mitsuba_frame)
             points.append(_point("mitsuba+oidn", spp, width, height, mitsuba_seconds, steps, image, reference.rgb,
-                                 mitsuba_psnr))
+                                 mitsuba_errors))
             if name in models.demodulated:
-                for method, source, render_seconds, input_psnr in (
-                        ("kdtrace+demodulated", frame, frame_seconds, frame_psnr),
-                        ("mitsuba+demodulated", mitsuba_frame, mitsuba_seconds, mitsuba_psnr)):
+                for method, source, render_seconds, input_errors in (
+                        ("kdtrace+demodulated", frame, frame_seconds, frame_errors),
+                        ("mitsuba+demodulated", mitsuba_frame, mitsuba_seconds, mitsuba_errors)):
                     image, steps = timed_reconstruction([lambda f: denoise_frame(models.demodulated[name], f)], source)
                     points.append(_point(method, spp, width, height, render_seconds, steps, image, reference.rgb,
-                                         input_psnr))
+                                         input_errors))
 
             half, seconds = ours(spp, width // 2, height // 2, aux=True)
             image, steps = timed_reconstruction([lambda f: denoise_frame(denoiser, f),
@@ -720,7 +737,7 @@ def measure_plugin_scene(name: str, spec: str, config: Config, profile_name: str
                 frame = AuxFrame(*(np.ascontiguousarray(a, np.float32) for a in (result.rgb, result.albedo, result.normal)))
                 image, steps = timed_reconstruction([lambda f: denoiser(f.rgb, f.albedo, f.normal)], frame)
                 row["points"].append(_point(method, spp, width, height, seconds, steps, image, reference.rgb,
-                                            errors(frame.rgb, reference.rgb)["psnr"]))
+                                            errors(frame.rgb, reference.rgb)))
         except PluginError as error:
             row["failed"] = failure(error)
     row["warnings"] = sorted({str(w.message) for w in caught})
@@ -919,13 +936,19 @@ def scene_metrics(row: dict, profile: ProfileConfig, recon: ReconstructionProfil
         if len(denoised):
             metrics.append(Metric(f"error_time/{name}/{metric}_psnr_{recon.spp}spp", "psnr", float(denoised["psnr"].iloc[0]),
                                   f"dB, ours + {what} at {recon.spp} spp vs Mitsuba {row['reference']['spp']} spp"))
+            if _measured(denoised, "display_psnr", method):
+                metrics.append(Metric(f"error_time/{name}/{metric}_display_psnr_{recon.spp}spp", "psnr",
+                                      float(denoised["display_psnr"].iloc[0]),
+                                      f"display-referred dB, ours + {what} at {recon.spp} spp"))
     blended = points[points["method"] == "kdtrace+denoiser-blend"]
-    if len(blended):
-        margins = blended["psnr"] - blended["input_psnr"]
-        worst = int(blended["spp"].iloc[int(np.argmin(margins.to_numpy()))])
-        metrics.append(Metric(f"error_time/{name}/blended_denoiser_margin_over_input_db", "psnr", float(margins.min()),
-                              "dB, the smallest PSNR gain over its own noisy input of ours + denoiser blended with the "
-                              f"input, over the sweep spp (at {worst} spp); >= 0: never below the input"))
+    for error, prefix, space in (("psnr", "", "linear"), ("display_psnr", "display_", "display-referred")):
+        if len(blended) and _measured(blended, f"input_{error}", "kdtrace+denoiser-blend"):
+            margins = blended[error] - blended[f"input_{error}"]
+            worst = int(blended["spp"].iloc[int(np.argmin(margins.to_numpy()))])
+            metrics.append(Metric(f"error_time/{name}/blended_denoiser_{prefix}margin_over_input_db", "psnr",
+                                  float(margins.min()),
+                                  f"dB ({space}), the smallest PSNR gain over its own noisy input of ours + denoiser "
+                                  f"blended with the input, over the sweep spp (at {worst} spp); >= 0: never below the input"))
     return metrics + plugin_metrics(row, recon)
 
 
@@ -947,13 +970,16 @@ def plugin_metrics(row: dict, recon: ReconstructionProfile) -> list[Metric]:
     return metrics
 
 
-def losses_to_input(points: pd.DataFrame) -> pd.DataFrame:
-    """Points of reconstructions below their own noisy input's PSNR: method, spp, PSNR, input PSNR, difference."""
-    if "input_psnr" not in points:
-        return pd.DataFrame(columns=["method", "spp", "psnr", "input_psnr", "difference"])
-    below = points[points["input_psnr"].notna() & (points["psnr"] < points["input_psnr"])].copy()
-    below["difference"] = below["psnr"] - below["input_psnr"]
-    return below[["method", "spp", "psnr", "input_psnr", "difference"]]
+def losses_to_input(points: pd.DataFrame, error: str = "psnr") -> pd.DataFrame:
+    """Points of reconstructions worse than their own noisy input by ``error`` (:data:`ERRORS`): method, spp,
+    the error, the input's, and ``difference`` (the reconstruction's minus the input's)."""
+    column = f"input_{error}"
+    if column not in points or error not in points:
+        return pd.DataFrame(columns=["method", "spp", error, column, "difference"])
+    worse = points[error] < points[column] if ERRORS[error] else points[error] > points[column]
+    below = points[points[column].notna() & worse].copy()
+    below["difference"] = below[error] - below[column]
+    return below[["method", "spp", error, column, "difference"]]
 
 
 def _format(value: float, digits: str) -> str:
@@ -961,38 +987,42 @@ def _format(value: float, digits: str) -> str:
 
 
 def plot_scene(row: dict, path: Path) -> Path:
-    """relMSE and PSNR against seconds (log x; log-log for relMSE) of one scene, as a PNG (Agg)."""
+    """Error against seconds of one scene, as a PNG (Agg): display-referred PSNR, HDR relMSE (log-log) and
+    linear PSNR, one panel each, the legend below the panels so that it covers no data."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     points = pd.DataFrame(row["points"])
-    figure, (left, right) = plt.subplots(1, 2, figsize=(11, 4.2), constrained_layout=True)
+    panels = [(error, label) for error, label in (("display_psnr", "display PSNR (dB)"), ("relmse", "relMSE (HDR)"),
+                                                  ("psnr", "linear PSNR (dB, clipped to [0, 1])")) if error in points]
+    figure, axes = plt.subplots(1, len(panels), figsize=(5.0 * len(panels), 4.4), constrained_layout=True)
     for method in methods_of(points):
-        label = method_label(method)
         group = points[points["method"] == method].sort_values("spp")
         if group.empty:
             continue
         style = ("-o" if method in PIPELINES else "--s" if method == "mitsuba" else "-^" if method in METHODS
                  else ":D")
-        left.loglog(group["seconds"], group["relmse"], style, label=label, markersize=4)
-        right.semilogx(group["seconds"], group["psnr"], style, label=label, markersize=4)
-        for axis, column in ((left, "relmse"), (right, "psnr")):
+        for axis, (error, _) in zip(axes, panels, strict=True):
+            plot = axis.loglog if error == "relmse" else axis.semilogx
+            plot(group["seconds"], group[error], style, label=method_label(method), markersize=4)
             first = group.iloc[0]
-            axis.annotate(f"{first['spp']}", (first["seconds"], first[column]), fontsize=7, xytext=(3, 3),
+            axis.annotate(f"{first['spp']}", (first["seconds"], first[error]), fontsize=7, xytext=(3, 3),
                           textcoords="offset points")
     floor = row["reference"]
-    left.axhline(floor["relmse_floor"], color="grey", linewidth=0.8, linestyle=":", label="reference noise")
-    if math.isfinite(floor["psnr_ceiling"]):
-        right.axhline(floor["psnr_ceiling"], color="grey", linewidth=0.8, linestyle=":", label="reference noise")
-    for threshold in PSNR_THRESHOLDS:
-        right.axhline(threshold, color="black", linewidth=0.5, alpha=0.4)
-    left.set(xlabel="seconds (render + reconstruction)", ylabel="relMSE (HDR)", title=f"{row['scene']}: relMSE")
-    right.set(xlabel="seconds (render + reconstruction)", ylabel="PSNR (dB, [0,1] clipped)", title=f"{row['scene']}: PSNR")
-    for axis in (left, right):
+    for axis, (error, label) in zip(axes, panels, strict=True):
+        if error == "relmse":
+            axis.axhline(floor["relmse_floor"], color="grey", linewidth=0.8, linestyle=":", label="reference noise")
+        elif error == "psnr" and math.isfinite(floor["psnr_ceiling"]):
+            axis.axhline(floor["psnr_ceiling"], color="grey", linewidth=0.8, linestyle=":", label="reference noise")
+        for threshold in (PSNR_THRESHOLDS if error == "psnr" else DISPLAY_PSNR_THRESHOLDS if error == "display_psnr"
+                          else ()):
+            axis.axhline(threshold, color="black", linewidth=0.5, alpha=0.4)
+        axis.set(xlabel="seconds (render + reconstruction)", ylabel=label, title=f"{row['scene']}: {label}")
         axis.grid(True, which="both", alpha=0.3)
-    right.legend(fontsize=7, loc="lower right")
+    handles, labels = axes[0].get_legend_handles_labels()
+    figure.legend(handles, labels, loc="outside lower center", ncol=min(5, len(labels)), fontsize=7)
     buffer = io.BytesIO()
     figure.savefig(buffer, format="png", dpi=110)
     plt.close(figure)
@@ -1008,13 +1038,14 @@ def scene_markdown(row: dict, recon: ReconstructionProfile) -> str:
              f"({reference['variant']}), whose own noise gives relMSE ≈ {reference['relmse_floor']:.2g} and "
              f"PSNR ≈ {reference['psnr_ceiling']:.1f} dB (errors near these measure the reference).")
     lines = [f"## {name}", "", f"![{name}: error against seconds](error_time/{name}.png)", "", about, ""]
-    below = losses_to_input(points)
-    if len(below):
-        cells = [f"{method_label(m)} at {spp} spp ({d:+.2f} dB)" for m, spp, d in zip(below["method"], below["spp"],
-                                                                                   below["difference"], strict=True)]
-        lines += [f"Below their own noisy input's PSNR: {'; '.join(cells)}.", ""]
-    else:
-        lines += ["No reconstruction is below its own noisy input's PSNR at any spp.", ""]
+    for error, what, unit in (("display_psnr", "display PSNR", " dB"), ("flip", "FLIP", ""), ("psnr", "linear PSNR", " dB")):
+        below = losses_to_input(points, error)
+        if len(below):
+            cells = [f"{method_label(m)} at {spp} spp ({d:+.3g}{unit})"
+                     for m, spp, d in zip(below["method"], below["spp"], below["difference"], strict=True)]
+            lines += [f"Worse than their own noisy input by {what}: {'; '.join(cells)}.", ""]
+        elif f"input_{error}" in points:
+            lines += [f"No reconstruction is worse than its own noisy input by {what} at any spp.", ""]
     if "weight" in points:
         blended = points[points["method"] == "kdtrace+denoiser-blend"].sort_values("spp")
         lines += ["Blend weights w(spp) of the denoiser (fitted on the validation views): "
@@ -1027,13 +1058,16 @@ def scene_markdown(row: dict, recon: ReconstructionProfile) -> str:
                   for spec, status in failures.items()] + [""]
     reach = equal_error_table(points)
     mitsuba_max = float(points[points["method"] == "mitsuba"]["seconds"].max())
-    header = ["method", *next(iter(reach.values())).keys()]
+    # thresholds every method was measured against (a plug-in row may lack the display space)
+    keys = [key for key in reach["mitsuba"] if all(key in cells for cells in reach.values())]
+    header = ["method", *keys]
     order = methods_of(points)
-    body = [[method_label(method), *(cell.cell() for cell in reach[method].values())] for method in order]
+    body = [[method_label(method), *(reach[method][key].cell() for key in keys)] for method in order]
     for pipeline in denoising_methods(order):
         body.append([f"speed-up of {method_label(pipeline)} over Mitsuba",
-                     *(speedup_cell(reach["mitsuba"][key], reach[pipeline][key], mitsuba_max) for key in header[1:])])
-    lines += ["Equal error: seconds to reach each threshold.", "", tabulate(body, headers=header, tablefmt="github"), ""]
+                     *(speedup_cell(reach["mitsuba"][key], reach[pipeline][key], mitsuba_max) for key in keys)])
+    lines += ["Equal error: seconds to reach each threshold (display-referred PSNR, linear PSNR clipped to [0, 1], "
+              "HDR relMSE).", "", tabulate(body, headers=header, tablefmt="github"), ""]
     grid = common_seconds(float(points["seconds"].min()), float(points["seconds"].max()))
     if grid:
         table = equal_time_table(points, grid)
@@ -1047,6 +1081,14 @@ def scene_markdown(row: dict, recon: ReconstructionProfile) -> str:
     return "\n".join(lines)
 
 
+def _measured(points: pd.DataFrame, error: str, *methods: str) -> bool:
+    """Whether every point of ``methods`` has a finite ``error`` (rows measured before a column existed do not)."""
+    if error not in points:
+        return False
+    values = points.loc[points["method"].isin(methods), error]
+    return bool(len(values)) and bool(np.isfinite(values.to_numpy(dtype=float)).all())
+
+
 def headline_table(rows: Sequence[dict], recon: ReconstructionProfile) -> str:
     """Per scene and pipeline at the denoiser's spp: PSNR, seconds, and the speed-up at equal PSNR over
     brute force on the pipeline's own renderer and over brute-force Mitsuba."""
@@ -1057,14 +1099,19 @@ def headline_table(rows: Sequence[dict], recon: ReconstructionProfile) -> str:
             if not ((points["method"] == pipeline) & (points["spp"] == recon.spp)).any():
                 continue
             renderer = RENDERER.get(pipeline, "kdtrace")  # a plug-in denoiser runs after our path tracer
-            result = headline(points, recon.spp, pipeline)
-            own = headline(points, recon.spp, pipeline, renderer)
-            body.append([row["scene"], method_label(pipeline), f"{result['psnr']:.2f}", f"{result['seconds']:.3g}",
-                         own["speedup"] if renderer == "kdtrace" else "(same)",
-                         result["reference"].cell(), result["speedup"]])
-    return tabulate(body, headers=["scene", f"pipeline at {recon.spp} spp", "PSNR dB", "seconds",
-                                   "speed-up over our brute force", "Mitsuba seconds to the same PSNR",
-                                   "speed-up over Mitsuba"], tablefmt="github")
+            shown = {error: headline(points, recon.spp, pipeline, error=error) for error in ("display_psnr", "relmse")
+                     if _measured(points, error, pipeline, "mitsuba")}
+            own = headline(points, recon.spp, pipeline, renderer,
+                           error="display_psnr" if _measured(points, "display_psnr", pipeline, renderer) else "psnr")
+            linear = headline(points, recon.spp, pipeline)
+            body.append([row["scene"], method_label(pipeline),
+                         f"{shown['display_psnr']['value']:.2f}" if "display_psnr" in shown else "—",
+                         f"{linear['seconds']:.3g}", own["speedup"] if renderer == "kdtrace" else "(same)",
+                         shown["display_psnr"]["speedup"] if "display_psnr" in shown else "—",
+                         shown["relmse"]["speedup"] if "relmse" in shown else "—", linear["speedup"]])
+    return tabulate(body, headers=["scene", f"pipeline at {recon.spp} spp", "display PSNR dB", "seconds",
+                                   "speed-up over our brute force (display)", "over Mitsuba, equal display PSNR",
+                                   "over Mitsuba, equal relMSE", "over Mitsuba, equal linear PSNR"], tablefmt="github")
 
 
 def write_outputs(rows: Sequence[dict], config: Config, profile_name: str, out_dir: Path) -> list[Metric]:

@@ -137,9 +137,9 @@ def synthetic_points() -> pd.DataFrame:
 def test_tables_and_headline_on_synthetic_curves():
     points = synthetic_points()
     reach = equal_error_table(points, psnr_thresholds=(30.0, 35.0), relmse_thresholds=(0.01, 0.001))
-    assert reach["mitsuba"]["PSNR 30 dB"].seconds == pytest.approx(0.1)
-    assert reach["mitsuba"]["PSNR 35 dB"].seconds == pytest.approx(0.01 * 10**1.5)
-    assert reach["kdtrace+denoiser"]["PSNR 35 dB"].kind == "not reached"
+    assert reach["mitsuba"]["linear 30 dB"].seconds == pytest.approx(0.1)
+    assert reach["mitsuba"]["linear 35 dB"].seconds == pytest.approx(0.01 * 10**1.5)
+    assert reach["kdtrace+denoiser"]["linear 35 dB"].kind == "not reached"
     assert reach["kdtrace+denoiser"]["relMSE 0.01"] == Reach(0.04, "at most")
     assert reach["mitsuba"]["relMSE 0.01"].seconds == pytest.approx(0.1)
     assert reach["mitsuba"]["relMSE 0.001"] == Reach(None, "not reached")  # would need 1 s; measured up to 0.64 s
@@ -148,6 +148,14 @@ def test_tables_and_headline_on_synthetic_curves():
     target = 10 ** ((31.0 - 20.0) / 10) * 0.01  # Mitsuba's seconds to 31 dB on its line
     assert result["reference"].seconds == pytest.approx(target)
     assert result["speedup"] == f"{target / 0.05:.3g}x"
+    # at equal relMSE (lower is better): Mitsuba reaches 0.004 at 0.25 s on its 0.001/t line
+    by_relmse = headline(points, 4, "kdtrace+denoiser", error="relmse")
+    assert by_relmse["value"] == 0.004 and by_relmse["reference"].seconds == pytest.approx(0.25)
+    assert by_relmse["speedup"] == f"{0.25 / 0.05:.3g}x"
+    # the display space where the points have it: its own thresholds and curve
+    shown = points.assign(display_psnr=points["psnr"] - 5.0)
+    assert equal_error_table(shown, display_thresholds=(25.0,))["mitsuba"]["display 25 dB"].seconds == pytest.approx(0.1)
+    assert headline(shown, 4, "kdtrace+denoiser", error="display_psnr")["reference"].seconds == pytest.approx(target)
 
     table = equal_time_table(points, [0.01, 0.05, 1.0])
     ours = table[table["method"] == "kdtrace+denoiser"].set_index("seconds")
