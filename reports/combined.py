@@ -60,7 +60,7 @@ from reports.paper_figures import (
 )
 
 #: Bump when what a row measures changes: cached rows become stale.
-ROW_VERSION = 1
+ROW_VERSION = 2
 
 
 def reduce2x(image: np.ndarray) -> np.ndarray:
@@ -78,10 +78,13 @@ def estimated_psnr(*rmses: float) -> float:
 
 
 def quality(image: np.ndarray, reference: np.ndarray) -> dict[str, float]:
-    """``psnr`` (dB) and ``rmse`` of the images clipped to [0, 1] (:mod:`reconstruction.metrics`)."""
-    from reconstruction.metrics import psnr, rmse
+    """``psnr`` (dB) and ``rmse`` of the linear images clipped to [0, 1], and ``display_psnr``, ``display_rmse``
+    and ``flip`` of the displayed images (the reference's exposure; :mod:`reconstruction.metrics`)."""
+    from reconstruction.metrics import display_metrics, psnr, rmse
 
-    return {"psnr": psnr(image, reference), "rmse": rmse(image, reference)}
+    shown = display_metrics(image, reference, name="the §6.4 reference")
+    return {"psnr": psnr(image, reference), "rmse": rmse(image, reference), "display_psnr": shown["display_psnr"],
+            "display_rmse": shown["display_rmse"], "flip": shown["flip"]}
 
 
 def measure_scene(name: str, config: Config, profile_name: str, models: Reconstruction,
@@ -122,6 +125,7 @@ def measure_scene(name: str, config: Config, profile_name: str, models: Reconstr
         "noisy_bicubic": quality(bicubic(np.clip(frame.rgb, 0.0, 1.0)), reference.rgb),
         "denoise_stage": denoise_stage, "superres_stage": superres_stage,
         "estimated_psnr": estimated_psnr(denoise_stage["rmse"], superres_stage["rmse"]),
+        "estimated_display_psnr": estimated_psnr(denoise_stage["display_rmse"], superres_stage["display_rmse"]),
         "reference": {"spp": reference.spp, "variant": reference.variant, "seconds": reference.seconds},
         "warnings": sorted({str(w.message) for w in caught}),
     }
@@ -227,6 +231,8 @@ def generate(config: Config, profile_name: str, out_dir: str | Path, fresh: bool
                               f"{row['width']}x{row['height']} vs Mitsuba {row['reference']['spp']} spp"))
         metrics.append(Metric(f"combined/{row['scene']}/denoise_stage_psnr", "psnr", row["denoise_stage"]["psnr"],
                               "dB, denoised half-size frame vs the reference reduced 2x"))
+        metrics.append(Metric(f"combined/{row['scene']}/display_psnr", "psnr", row["final"]["display_psnr"],
+                              "display-referred dB of the final frame"))
     write_metrics(out_dir, "combined", metrics)
     return metrics
 
@@ -241,6 +247,9 @@ def table(rows: Sequence[dict]) -> pd.DataFrame:
             "render_size": f"{row['render_width']}x{row['render_height']}", "final_size": f"{row['width']}x{row['height']}",
             "spp": row["spp"],
             **{f"{stage}_seconds": value for stage, value in row["seconds"].items()},
+            "display_psnr": row["final"].get("display_psnr", math.nan), "flip": row["final"].get("flip", math.nan),
+            "estimated_display_psnr": row.get("estimated_display_psnr", math.nan),
+            "bicubic_display_psnr": row["bicubic"].get("display_psnr", math.nan),
             "psnr": row["final"]["psnr"], "rmse": row["final"]["rmse"],
             "estimated_psnr": row["estimated_psnr"],
             "denoise_stage_psnr": row["denoise_stage"]["psnr"], "denoise_stage_rmse": row["denoise_stage"]["rmse"],
@@ -253,27 +262,30 @@ def table(rows: Sequence[dict]) -> pd.DataFrame:
 
 
 def markdown_table(frame: pd.DataFrame) -> str:
-    """The combined table, ours beside the paper's estimates."""
-    def paper(value: float, digits: str) -> str:
+    """The combined tables: display-referred beside the paper's estimates, then seconds, then linear."""
+    def cell(value: float, digits: str) -> str:
         return "" if not math.isfinite(value) else format(value, digits)
 
-    body = [[
-        record["scene"] + (f" ({record['paper_scene']})" if record["paper_scene"] else ""),
-        f"{record['render_size']} → {record['final_size']}",
-        f"{record['render_seconds']:.3f} / {record['denoise_seconds']:.3f} / {record['superres_seconds']:.3f}",
-        f"{record['total_seconds']:.3f}",
-        f"{record['psnr']:.2f} / {record['rmse']:.4f}",
-        f"{record['estimated_psnr']:.2f}",
-        paper(record["paper_estimated_psnr"], ".2f"),
-        f"{record['denoise_stage_psnr']:.2f} / {record['superres_stage_psnr']:.2f}",
-        f"{record['bicubic_psnr']:.2f}",
-        f"{record['noisy_bicubic_psnr']:.2f}",
-        paper(record["paper_total_seconds_one_core"], ".2f"),
-    ] for record in frame.to_dict("records")]
-    return tabulate(body, headers=[
-        "scene (paper's)", "render → final", "s render / denoise / SR", "s total", "PSNR / RMSE",
-        "estimate (paper's rule)", "paper estimate", "stage PSNR denoise / SR", "denoised + bicubic PSNR",
-        "noisy + bicubic PSNR", "paper total s (1 core, 1024²)"], tablefmt="github")
+    records = frame.to_dict("records")
+    names = [record["scene"] + (f" ({record['paper_scene']})" if record["paper_scene"] else "") for record in records]
+    display = tabulate([[name, cell(r["display_psnr"], ".2f"), cell(r["estimated_display_psnr"], ".2f"),
+                         cell(r["paper_estimated_psnr"], ".2f"), cell(r["bicubic_display_psnr"], ".2f"),
+                         cell(r["flip"], ".3f")] for name, r in zip(names, records, strict=True)],
+                       headers=["scene (paper's)", "PSNR", "estimate (paper's rule)", "paper estimate",
+                                "denoised + bicubic", "FLIP"], tablefmt="github")
+    seconds = tabulate([[name, f"{r['render_size']} → {r['final_size']}", f"{r['render_seconds']:.3f}",
+                         f"{r['denoise_seconds']:.3f}", f"{r['superres_seconds']:.3f}", f"{r['total_seconds']:.3f}",
+                         cell(r["paper_total_seconds_one_core"], ".2f")] for name, r in zip(names, records, strict=True)],
+                       headers=["scene (paper's)", "render → final", "render s", "denoise s", "SR s", "total s",
+                                "paper total s (1 core, 1024²)"], tablefmt="github")
+    linear = tabulate([[name, f"{r['psnr']:.2f}", f"{r['rmse']:.4f}", f"{r['estimated_psnr']:.2f}",
+                        f"{r['denoise_stage_psnr']:.2f}", f"{r['superres_stage_psnr']:.2f}", f"{r['bicubic_psnr']:.2f}",
+                        f"{r['noisy_bicubic_psnr']:.2f}"] for name, r in zip(names, records, strict=True)],
+                      headers=["scene (paper's)", "PSNR", "RMSE", "estimate", "stage: denoise", "stage: SR",
+                               "denoised + bicubic", "noisy + bicubic"], tablefmt="github")
+    return (f"### Display-referred (the paper's space; PSNR dB, FLIP lower is better)\n\n{display}\n\n"
+            f"### Seconds (this machine, all cores; the paper's on one core, for reference only)\n\n{seconds}\n\n"
+            f"### Linear radiance clipped to [0, 1] (PSNR dB)\n\n{linear}")
 
 
 def write_outputs(rows: Sequence[dict], config: Config, profile_name: str, out_dir: Path,
@@ -294,14 +306,16 @@ def write_outputs(rows: Sequence[dict], config: Config, profile_name: str, out_d
         f"{recon.max_depth}; denoised by the scene's own denoiser and superresolved 2x to "
         f"{profile.combined_width}x{profile.combined_height} (networks of reconstruction profile "
         f"`{profile.reconstruction_profile}`), then compared with Mitsuba at {profile.combined_reference_spp} spp "
-        f"(PSNR/RMSE on linear images clipped to [0, 1]). Seconds are warm, the shortest of {TIMING_REPEATS} runs "
+        f"(display-referred PSNR and FLIP: each reference exposed so that its 99th-percentile luminance is white, "
+        f"clipped, sRGB; linear PSNR/RMSE on images clipped to [0, 1]). Seconds are warm, the shortest of {TIMING_REPEATS} runs "
         f"(render: kernel wall time; networks: after a warm-up call, whole frame, float32, all cores). "
         f"{load_note(rows)}Absolute "
         f"seconds depend on the machine and the paper's were on one core at 1024x1024, so they are printed for "
         f"reference only, never compared. Seed {profile.seed}.\n\n"
         "Stage PSNRs: the denoised half-size frame against the reference reduced 2x (2x2 mean), and the "
         "superresolution net applied to that reduced reference against the reference. \"Estimate (paper's rule)\" "
-        "adds the two stage RMSEs and converts to PSNR, as the paper does for its estimates; the paper measured "
+        "adds the two stage RMSEs (display-referred in the first table) and converts to PSNR, as the paper does for "
+        "its estimates; the paper measured "
         f"{COMBINED_CBOX_MEASURED['psnr']} dB (RMSE {COMBINED_CBOX_MEASURED['rmse']}) on four Cornell box renderings.\n\n"
         + (f"Warnings during the run: {'; '.join(warned)}\n\n" if warned else "")
         + markdown_table(frame) + "\n"

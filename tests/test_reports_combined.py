@@ -42,7 +42,8 @@ def test_generate_end_to_end_and_reuse(shared_scenes, isolated_cache, tmp_path, 
     pytest.importorskip("mitsuba")
     config, out = tiny_config(), tmp_path / "report"
     metrics = generate(config, "tiny", out, progress=False)
-    assert {m.name for m in metrics} == {"combined/cbox-original/psnr", "combined/cbox-original/denoise_stage_psnr"}
+    assert {m.name for m in metrics} == {"combined/cbox-original/psnr", "combined/cbox-original/denoise_stage_psnr",
+                                         "combined/cbox-original/display_psnr"}
     assert all(m.kind == "psnr" and m.value > 0 for m in metrics)
     assert [m.name for m in read_metrics(out / "metrics" / "combined.json")] == [m.name for m in metrics]
 
