@@ -62,8 +62,10 @@ def pooled(predictions: Sequence[np.ndarray], references: Sequence[np.ndarray]) 
         dB), ``per_image_psnr`` (those PSNRs, in the order of the pairs). HDR: ``relmse`` and
         ``smape`` (means over all values, :mod:`reconstruction.metrics`). When every pair is
         (H, W, 3), display-referred (each view tonemapped with its reference's exposure,
-        :func:`reconstruction.metrics.display_metrics`): ``display_rmse`` and ``display_psnr``
-        pooled over all displayed values, and ``flip``, the pixel-weighted mean FLIP. Also
+        :func:`reconstruction.metrics.display_metrics`; a view with an all-black reference with
+        the median exposure of the others, counted in ``black_references``): ``display_rmse``
+        and ``display_psnr`` pooled over all displayed values, and ``flip``, the pixel-weighted
+        mean FLIP. Also
         ``images`` and ``pixels`` (values counted / channels are not separated).
     """
     from reconstruction import metrics
@@ -73,6 +75,7 @@ def pooled(predictions: Sequence[np.ndarray], references: Sequence[np.ndarray]) 
     squared, count, per_image = 0.0, 0, []
     relative = {"relmse": 0.0, "smape": 0.0}
     display = {"squared": 0.0, "flip": 0.0} if all(np.ndim(r) == 3 and np.shape(r)[2] == 3 for r in references) else None
+    exposures = _exposures(references) if display is not None else []
     for index, (prediction, reference) in enumerate(zip(predictions, references, strict=True)):
         prediction, reference = np.asarray(prediction, np.float64), np.asarray(reference, np.float64)
         if prediction.shape != reference.shape:
@@ -87,7 +90,7 @@ def pooled(predictions: Sequence[np.ndarray], references: Sequence[np.ndarray]) 
         relative["relmse"] += metrics.relmse(prediction, reference) * prediction.size
         relative["smape"] += metrics.smape(prediction, reference) * prediction.size
         if display is not None:
-            shown = metrics.display_metrics(prediction, reference, name=f"image {index}")
+            shown = metrics.display_metrics(prediction, reference, exposures[index])
             display["squared"] += shown["display_rmse"] ** 2 * prediction.size
             display["flip"] += shown["flip"] * prediction.size
     rmse = math.sqrt(squared / count)
@@ -96,7 +99,32 @@ def pooled(predictions: Sequence[np.ndarray], references: Sequence[np.ndarray]) 
               "pixels": count, **{name: total / count for name, total in relative.items()}}
     if display is not None:
         result.update(_display_pooled(display["squared"] / count, display["flip"] / count))
+        result["black_references"] = sum(exposure is None for exposure in _exposures(references, fallback=False))
     return result
+
+
+def _exposures(references: Sequence[np.ndarray], fallback: bool = True) -> list[float | None]:
+    """Each view's display exposure (:func:`reconstruction.metrics.auto_exposure`).
+
+    A view whose reference is entirely black has none of its own (a dataset may hold views that
+    no light reaches); with ``fallback`` it is shown with the median exposure of the others, so
+    that its errors still count. ValueError when no view has one.
+    """
+    from reconstruction import metrics
+
+    own = []
+    for reference in references:
+        try:
+            own.append(metrics.auto_exposure(reference))
+        except ValueError:
+            own.append(None)
+    if not fallback:
+        return own
+    defined = [exposure for exposure in own if exposure is not None]
+    if not defined:
+        raise ValueError(f"no display exposure: all {len(own)} references are black (or not finite)")
+    median = float(np.median(defined))
+    return [median if exposure is None else exposure for exposure in own]
 
 
 def _display_pooled(mean_squared: float, flip: float) -> dict[str, float]:
@@ -278,6 +306,8 @@ def combine(results: Sequence[dict[str, float]]) -> dict[str, float]:
     for name in ("relmse", "smape"):
         if all(name in r for r in results):
             combined[name] = sum(r[name] * r["pixels"] for r in results) / pixels
+    if all("black_references" in r for r in results):
+        combined["black_references"] = sum(r["black_references"] for r in results)
     if all("display_rmse" in r for r in results):
         combined.update(_display_pooled(sum(r["display_rmse"] ** 2 * r["pixels"] for r in results) / pixels,
                                         sum(r["flip"] * r["pixels"] for r in results) / pixels))

@@ -440,7 +440,8 @@ def _test_columns(quality: dict, model_test: dict) -> dict:
             "reference_psnr_pooled": noise.get("pooled_psnr"),
             "reference_margin_pooled_db": None if not noise else noise["pooled_psnr"] - best,
             "reference_margin_per_view_db": _per_view_margin(noise, model_test, test.get("oidn"), test["noisy"]),
-            "test_reference_spp": noise.get("reference_spp")}
+            "test_reference_spp": noise.get("reference_spp"),
+            "black_test_views": model_test.get("black_references")}
 
 
 def _table2(m: dict) -> list[dict]:
@@ -663,7 +664,8 @@ _VIEWS: dict[str, list[View]] = {
                    ("reference_margin_per_view_db", "reference margin per view (dB)")]),
         ("Splits, references and models (linear PSNR, dB)",
          [("scene", "scene"), ("model", "model"), ("train_psnr", "train"), ("validation_psnr", "validation"),
-          ("test_views", "test views"), ("test_reference_spp", "reference spp"), ("model_source", "trained")]),
+          ("test_views", "test views"), ("black_test_views", "of which black"), ("test_reference_spp", "reference spp"),
+          ("model_source", "trained")]),
     ],
     "table3": [
         (_DISPLAY, [("scene", "scene"), ("views", "views"), ("paper_mixed_psnr", "paper mixed PSNR"),
@@ -727,7 +729,9 @@ _TITLES = {
     "table2": ("Table 2 — denoiser quality per scene (per-scene and mixed models)",
                "Metrics pooled over whole views of each split, in two spaces (reconstruction/metrics.py): "
                "display-referred, the space of the paper's PSNRs and of what a person sees, and linear radiance "
-               "clipped to [0, 1] with HDR relMSE beside it. "
+               "clipped to [0, 1] with HDR relMSE beside it. A test view whose reference is entirely black (no light "
+               "reaches what its camera sees; `of which black`) has no exposure of its own and is displayed with the "
+               "median exposure of the others; in linear PSNR such a view only rewards black output. "
                "`all scenes`: pooled over every scene's views (the paper's Mixed row is the mixed model on its own "
                "test set). Paper figures beside ours where the paper has the scene. `per-scene +normal+depth` "
                "(profile `variant_scenes`): the documented variant fed albedo, normal and depth ({variant_parameters} "

@@ -147,6 +147,14 @@ def test_pooled_psnr_is_not_the_mean_of_per_image_psnrs():
     assert both["display_rmse"] == pytest.approx(np.sqrt(np.mean([v["display_rmse"] ** 2 for v in views])))
     assert both["flip"] == pytest.approx(np.mean([v["flip"] for v in views]))
     assert both["relmse"] == pytest.approx(np.mean([image_metrics.relmse(p, r) for p, r in zip(predictions, references, strict=True)]))
+    # a view no light reaches has no exposure of its own: it is shown with the others' (and counted)
+    black = evaluate.pooled([predictions[0], np.full((8, 8, 3), 0.01)], [references[0], np.zeros((8, 8, 3))])
+    exposure = image_metrics.auto_exposure(references[0])
+    expected = np.mean([image_metrics.display_metrics(predictions[0], references[0])["display_rmse"] ** 2,
+                        image_metrics.display_metrics(np.full((8, 8, 3), 0.01), np.zeros((8, 8, 3)), exposure)["display_rmse"] ** 2])
+    assert black["black_references"] == 1 and black["display_rmse"] == pytest.approx(np.sqrt(expected))
+    with pytest.raises(ValueError, match="all 1 references are black"):
+        evaluate.pooled([predictions[0]], [np.zeros((8, 8, 3))])
     # and combine() of the parts is pooled() of the whole
     parts = evaluate.combine([evaluate.pooled(predictions[:1], references[:1]), evaluate.pooled(predictions[1:], references[1:])])
     for name in ("psnr", "display_psnr", "flip", "relmse", "smape"):
