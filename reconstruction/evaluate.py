@@ -169,6 +169,17 @@ def beyond_input(outputs: Sequence[np.ndarray], inputs: Sequence[np.ndarray]) ->
                    for output, noisy in zip(outputs, inputs, strict=True)))
 
 
+def black_where_lit(outputs: Sequence[np.ndarray], inputs: Sequence[np.ndarray]) -> int:
+    """Pixels the denoiser made exactly black (every channel 0) where the noisy input has light.
+
+    The decode clamps negative network outputs to radiance 0 (:func:`reconstruction.hdr.decode`),
+    so a network pushed far below its input on an unfamiliar scene shows as patches of exact
+    black: a collapsed output, not a denoising error.
+    """
+    return int(sum(np.count_nonzero(np.all(output <= 0.0, axis=-1) & np.any(noisy > 0.0, axis=-1))
+                   for output, noisy in zip(outputs, inputs, strict=True)))
+
+
 def denoiser_quality(model: nn.Module, dataset, split: str | None = "test", auxiliary: tuple[str, ...] = ("albedo",),
                      with_oidn: bool = True) -> dict[str, dict[str, float]]:
     """Pooled metrics of noisy input, ``model`` and (optionally) OIDN on the views of one split.
@@ -179,7 +190,8 @@ def denoiser_quality(model: nn.Module, dataset, split: str | None = "test", auxi
     -------
     dict
         Method (``"noisy"``, ``"ours"``, ``"oidn"``) -> :func:`pooled` metrics; ``"ours"`` also
-        has ``beyond_input``, the pixels brighter than their whole noisy frame (:func:`beyond_input`).
+        has ``beyond_input``, the pixels brighter than their whole noisy frame (:func:`beyond_input`),
+        and ``black_where_lit``, the pixels made black where the input has light (:func:`black_where_lit`).
     """
     from reconstruction.baselines import noisy_input, oidn
 
@@ -194,6 +206,7 @@ def denoiser_quality(model: nn.Module, dataset, split: str | None = "test", auxi
             outputs["oidn"].append(oidn(view["noisy"], view["albedo"], view["normal"]))
     quality = {method: pooled(images, references) for method, images in outputs.items()}
     quality["ours"]["beyond_input"] = beyond_input(outputs["ours"], outputs["noisy"])
+    quality["ours"]["black_where_lit"] = black_where_lit(outputs["ours"], outputs["noisy"])
     return quality
 
 

@@ -514,6 +514,7 @@ def _table3(m: dict) -> list[dict]:
                      "mixed_psnr": q["mixed"]["test"]["psnr"],
                      "mixed_rmse": q["mixed"]["test"]["rmse"],
                      "mixed_pixels_beyond_input": q["mixed"]["test"].get("beyond_input"),
+                     "mixed_pixels_black_where_lit": q["mixed"]["test"].get("black_where_lit"),
                      "per_scene_psnr": q["ours"]["test"]["ours"]["psnr"],
                      "psnr_difference": q["ours"]["test"]["ours"]["psnr"] - q["mixed"]["test"]["psnr"],
                      "noisy_psnr": q["ours"]["test"]["noisy"]["psnr"],
@@ -525,7 +526,8 @@ def _table3(m: dict) -> list[dict]:
         rows.append({"scene": f"{m['unseen']} (never seen)", "views": f"all ({u['views']})",
                      **_spaces(u["ours"], u["noisy"], u.get("oidn")),
                      "mixed_psnr": u["ours"]["psnr"], "mixed_rmse": u["ours"]["rmse"],
-                     "mixed_pixels_beyond_input": u["ours"].get("beyond_input"), "per_scene_psnr": None,
+                     "mixed_pixels_beyond_input": u["ours"].get("beyond_input"),
+                     "mixed_pixels_black_where_lit": u["ours"].get("black_where_lit"), "per_scene_psnr": None,
                      "psnr_difference": None, "noisy_psnr": u["noisy"]["psnr"],
                      "oidn_psnr": u.get("oidn", {}).get("psnr"),
                      "paper_mixed_psnr": paper["test_psnr"], "paper_mixed_rmse": paper["test_rmse"],
@@ -535,7 +537,8 @@ def _table3(m: dict) -> list[dict]:
         rows.append({"scene": f"{m['far']} (never seen, far)", "views": f"all ({u['views']})",
                      **_spaces(u["ours"], u["noisy"], u.get("oidn")),
                      "mixed_psnr": u["ours"]["psnr"], "mixed_rmse": u["ours"]["rmse"],
-                     "mixed_pixels_beyond_input": u["ours"].get("beyond_input"), "per_scene_psnr": None,
+                     "mixed_pixels_beyond_input": u["ours"].get("beyond_input"),
+                     "mixed_pixels_black_where_lit": u["ours"].get("black_where_lit"), "per_scene_psnr": None,
                      "psnr_difference": None, "noisy_psnr": u["noisy"]["psnr"],
                      "oidn_psnr": u.get("oidn", {}).get("psnr"), "paper_mixed_psnr": None, "paper_mixed_rmse": None,
                      "paper_psnr_difference": None})
@@ -674,7 +677,8 @@ _VIEWS: dict[str, list[View]] = {
                                                     "FLIP noisy / mixed / OIDN")]),
         (_LINEAR, [("scene", "scene"), ("noisy_psnr", "noisy"), ("mixed_psnr", "mixed"), ("per_scene_psnr", "per-scene"),
                    ("oidn_psnr", "OIDN"), ("relmse", "relMSE mixed"),
-                   ("mixed_pixels_beyond_input", "mixed pixels beyond input")]),
+                   ("mixed_pixels_beyond_input", "pixels beyond input"),
+                   ("mixed_pixels_black_where_lit", "pixels black where lit")]),
     ],
     "table5": [
         (_DISPLAY, [("data", "data"), ("split", "split"), ("images", "images"), ("paper_psnr", "paper PSNR"),
@@ -755,7 +759,10 @@ _TITLES = {
                "of which the mixed model saw; the paper's unseen scene is Pine, ours differs. "
                "`mixed_pixels_beyond_input`: pixels of the mixed model's output brighter than anything in their own "
                "noisy frame (a denoiser averages samples, so such a pixel is a blown-up output, not a denoising error; "
-               "`reconstruction.evaluate.beyond_input`)."),
+               "`reconstruction.evaluate.beyond_input`); `mixed_pixels_black_where_lit`: pixels it made exactly black "
+               "where the noisy input has light (negative network outputs are clamped to 0, so a collapsed output shows "
+               "as black patches; `reconstruction.evaluate.black_where_lit`). Both are failures of a different kind from "
+               "a low PSNR and are counted apart."),
     "table5": ("Table 5 — superresolution 2x against bicubic and Lanczos",
                "Each target is reduced 2x ({downsample}) and upsampled back; PSNR/RMSE pooled, clipped to [0, 1], "
                "linear. Photos: whole images (train and validation photos were used in training / model choice; the "

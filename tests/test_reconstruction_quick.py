@@ -218,3 +218,18 @@ def test_denoiser_blended_with_its_input_is_not_below_the_input_at_any_sweep_spp
         if spp == PROFILE.spp:
             assert psnrs["blend"] >= psnrs["noisy"] + DENOISER_MARGIN_DB, psnrs
     assert not below, below
+
+
+def test_blown_up_and_collapsed_outputs_are_counted_apart_from_the_psnr():
+    import numpy as np
+
+    noisy = np.full((4, 4, 3), 0.2)
+    noisy[0, 0] = 0.8  # the frame's brightest value
+    noisy[3, 3] = 0.0  # no light here
+    output = np.full((4, 4, 3), 0.2)
+    output[1, 1, 2] = 0.81  # one channel above anything in the input: blown up
+    output[2, 2] = 0.0  # black where the input has light: collapsed
+    output[3, 3] = 0.0  # black where the input is black: fine
+    assert evaluate.beyond_input([output], [noisy]) == 1
+    assert evaluate.black_where_lit([output], [noisy]) == 1
+    assert evaluate.beyond_input([noisy], [noisy]) == evaluate.black_where_lit([noisy], [noisy]) == 0

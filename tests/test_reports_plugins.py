@@ -108,7 +108,7 @@ class _Views:
 def _pooled(psnr: float) -> dict[str, float]:
     return {"psnr": psnr, "rmse": 10 ** (-psnr / 20), "psnr_mean": psnr, "images": 2, "pixels": 2 * SIZE * SIZE * 3,
             "display_psnr": psnr - 6, "display_rmse": 10 ** (-(psnr - 6) / 20), "flip": 1.0 / psnr,
-            "relmse": 10 ** (-psnr / 10), "smape": 0.1, "beyond_input": 0}
+            "relmse": 10 ** (-psnr / 10), "smape": 0.1, "beyond_input": 0, "black_where_lit": 0}
 
 
 def _reconstruction_stand_in(config, profile_name, fresh, progress, denoisers=()):

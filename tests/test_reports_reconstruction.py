@@ -32,7 +32,7 @@ def _pooled(psnr: float, images: int = 2, pixels: int = 2 * 64 * 64 * 3) -> dict
     display = psnr - 6  # a display-referred PSNR of the same images, lower as on real dark scenes
     return {"psnr": psnr, "rmse": 10 ** (-psnr / 20), "psnr_mean": psnr + 1, "images": images, "pixels": pixels,
             "display_psnr": display, "display_rmse": 10 ** (-display / 20), "flip": 1.0 / psnr, "relmse": 10 ** (-psnr / 10),
-            "smape": 0.1, "beyond_input": 0}
+            "smape": 0.1, "beyond_input": 0, "black_where_lit": 0}
 
 
 def _measurements() -> dict:
