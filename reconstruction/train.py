@@ -552,12 +552,22 @@ def _datasets(scene_names: list[str] | tuple[str, ...], profile: ReconstructionP
     return {name: generate_dataset(name, profile, progress) for name in scene_names}
 
 
-def _denoiser_data_hash(datasets: dict, profile: ReconstructionProfile, auxiliary: tuple[str, ...]) -> str:
-    """Content key of the crops :func:`_denoiser_crops` draws: dataset keys and crop settings."""
+def _dataset_keys(scene_names: list[str] | tuple[str, ...], profile: ReconstructionProfile) -> dict[str, str]:
+    """Scene name -> the content key of its dataset, without generating it (a stored model needs no data)."""
+    from kdtrace.scenes import load_scene
+    from reconstruction.data import dataset_key
+
+    if not scene_names:
+        raise ValueError("no scenes given")
+    return {name: dataset_key(load_scene(name), profile) for name in scene_names}
+
+
+def _denoiser_data_hash(keys: dict[str, str], profile: ReconstructionProfile, auxiliary: tuple[str, ...]) -> str:
+    """Content key of the crops :func:`_denoiser_crops` draws: dataset keys (by scene) and crop settings."""
     # only scenes with their own count add it: every other model keeps its key (and its cache)
-    own_counts = {name: profile.crops_for(name) for name in datasets
+    own_counts = {name: profile.crops_for(name) for name in keys
                   if profile.crops_for(name) != profile.crops_per_view}
-    return content_key("denoiser-data", [dataset.key for dataset in datasets.values()], list(auxiliary),
+    return content_key("denoiser-data", list(keys.values()), list(auxiliary),
                        profile.crop_size, profile.crops_per_view, profile.seed, *([own_counts] if own_counts else []))
 
 
@@ -589,7 +599,8 @@ def denoiser_data(scene_names: list[str] | tuple[str, ...], profile: str | Recon
     """
     profile = _resolve(profile)
     datasets = _datasets(scene_names, profile, progress)
-    return _denoiser_crops(datasets, profile, auxiliary, encode), _denoiser_data_hash(datasets, profile, auxiliary)
+    keys = {name: dataset.key for name, dataset in datasets.items()}
+    return _denoiser_crops(datasets, profile, auxiliary, encode), _denoiser_data_hash(keys, profile, auxiliary)
 
 
 def train_denoiser(scene_names: list[str] | tuple[str, ...], profile: str | ReconstructionProfile = "quick",
@@ -639,8 +650,7 @@ def train_denoiser(scene_names: list[str] | tuple[str, ...], profile: str | Reco
     from reconstruction.hdr import decode
 
     profile = _resolve(profile).denoiser
-    datasets = _datasets(scene_names, profile, progress)
-    data_hash = _denoiser_data_hash(datasets, profile, auxiliary)
+    data_hash = _denoiser_data_hash(_dataset_keys(scene_names, profile), profile, auxiliary)
     if model is None:
         from reconstruction.models import Denoiser
 
@@ -657,7 +667,10 @@ def train_denoiser(scene_names: list[str] | tuple[str, ...], profile: str | Reco
     directory = Path(directory)
     published = _published_result(model, directory, profile, data_hash)
     if published is not None:
-        return published  # its crops are not drawn: the mixed model's take about 10 GB
+        return published  # no dataset is generated and no crop drawn: the mixed model's take about 10 GB
+    datasets = _datasets(scene_names, profile, progress)
+    if _denoiser_data_hash({name: d.key for name, d in datasets.items()}, profile, auxiliary) != data_hash:
+        raise RuntimeError("a generated dataset's key differs from reconstruction.data.dataset_key of its scene")
     data = _denoiser_crops(datasets, profile, auxiliary)
     precision = resolve_precision(profile.precision)[0]
     result = fit(model, loss_fn, data, directory, data_hash, profile.epochs, profile.batch_size,
@@ -710,8 +723,8 @@ def train_superres(profile: str | ReconstructionProfile = "quick", scene_names: 
     from reconstruction.data import AUGMENT_EXPOSURE, AUGMENT_FACTOR, generate_dataset, superres_data
 
     profile = _resolve(profile)
-    datasets = [generate_dataset(name, profile, progress) for name in scene_names]
-    data_hash = content_key("superres-data", [d.key for d in datasets], profile.superres_crop_size,
+    keys = list(_dataset_keys(scene_names, profile).values()) if scene_names else []
+    data_hash = content_key("superres-data", keys, profile.superres_crop_size,
                             profile.superres_crops_per_image, profile.superres_downsample, profile.seed,
                             *(["augmented", AUGMENT_FACTOR, AUGMENT_EXPOSURE] if profile.superres_augment else []))
     if model is None:
@@ -728,6 +741,9 @@ def train_superres(profile: str | ReconstructionProfile = "quick", scene_names: 
     published = _published_result(model, directory, profile, data_hash)
     if published is not None:
         return published
+    datasets = [generate_dataset(name, profile, progress) for name in scene_names]
+    if [d.key for d in datasets] != keys:
+        raise RuntimeError("a generated dataset's key differs from reconstruction.data.dataset_key of its scene")
     data = {split: superres_tensors(value) for split, value in superres_data(profile, datasets).items()}
     precision = resolve_precision(profile.precision)[0]
     result = fit(model, loss_fn, data, directory, data_hash, profile.epochs, profile.batch_size,

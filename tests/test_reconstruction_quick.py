@@ -10,7 +10,8 @@ epoch, which uses the validation split):
 * the denoiser must beat the noisy input by at least :data:`DENOISER_MARGIN_DB` of PSNR
   pooled over the test views (OIDN is reported beside it, not asserted);
 * the superresolution net must beat bicubic (pooled PSNR, strictly) on the scene's test
-  views and on the held-out photo test set (:data:`reconstruction.evaluate.TEST_PHOTOS`).
+  views; on the held-out photo test set (:data:`reconstruction.evaluate.TEST_PHOTOS`) the
+  quick net is below bicubic, a strict expected failure.
 
 Training itself is covered by the fast tests of ``tests/test_reconstruction_train.py``.
 The measured numbers are printed (``pytest -s`` or ``-rP`` shows them).
@@ -30,6 +31,8 @@ from reconstruction.data import generate_dataset
 from reconstruction.train import train_denoiser, train_superres
 
 SCENE = "cbox-original"
+#: The real training loop (the module's fixture replaces it by one that fails).
+TRAINING = train.fit
 PROFILE = DEFAULT_CONFIG.reconstruction.profile("quick")
 #: Required PSNR gain of the denoiser over its noisy input on the test views (dB).
 DENOISER_MARGIN_DB = 1.0
@@ -58,7 +61,7 @@ def trained(tmp_path_factory):
         denoiser = train_denoiser([SCENE], PROFILE, progress=False)
         seconds["denoiser"] = time.perf_counter() - started
         started = time.perf_counter()
-        superres = train_superres(PROFILE, [SCENE], progress=False)
+        superres = train_superres(PROFILE, list(DEFAULT_CONFIG.profile("quick").reconstruction_scenes), progress=False)
         seconds["superres"] = time.perf_counter() - started
         print("\n[quick] seconds: " + ", ".join(f"{k} {v:.1f}" for k, v in seconds.items()))
         yield {"dataset": dataset, "denoiser": denoiser, "superres": superres, "cache": cache}
@@ -89,10 +92,9 @@ def test_superresolution_beats_bicubic_on_test_views(trained):
     assert gain > 0.0, results
 
 
-@pytest.mark.xfail(strict=False, reason=(
-    "not reproducible at the quick scale: +0.11 dB over bicubic when the quick profile was set (d44070d), "
-    "-0.030 dB (32.693 against 32.723) on 2026-12-01 on this machine kind with the code of that commit's "
-    "successor da4aaec, and the report's Table 5 has -0.52 dB; SR above bicubic on photos is issue 11's target"))
+@pytest.mark.xfail(strict=True, reason=(
+    "the committed quick superresolution net (32x32 crops, 40 epochs) is 0.45 dB below bicubic on the held-out "
+    "photos; the standard one is above it (Table 5). Strict: a quick net that beats bicubic here must say so."))
 def test_superresolution_beats_bicubic_on_the_held_out_photos(trained):
     """The photo test set (never used in training or model choice; chosen before any evaluation)."""
     photos = [evaluate.held_out_photo(name) for name in evaluate.TEST_PHOTOS]
@@ -112,7 +114,10 @@ def test_untrained_superresolution_is_exactly_bicubic():
     assert torch.equal(Superresolution()(y), y)
 
 
-def test_main_quality_reuses_the_models_and_writes_the_table(trained, tmp_path):
+def test_main_quality_reuses_the_models_and_writes_the_table(trained, tmp_path, monkeypatch):
+    # its superresolution net is trained on this one scene (not a committed network), in a private store
+    monkeypatch.setattr(train, "fit", TRAINING)
+    monkeypatch.setattr(train, "MODEL_STORE_ROOT", tmp_path / "store")
     started = time.perf_counter()
     table = evaluate.main_quality([SCENE], PROFILE, tmp_path, with_oidn=HAVE_OIDN, progress=False)
     print(f"\n[quick] main_quality with cached models: {time.perf_counter() - started:.1f} s\n"
