@@ -113,7 +113,17 @@ def test_tables_from_measurements(tmp_path):
     assert by_name["table2/car/mixed_test_psnr"].kind == "psnr"
     assert by_name["table6/car/oidn_over_ours_seconds"].kind == "ratio"
     assert by_name[f"table3/{UNSEEN}/mixed_psnr"].value == pytest.approx(22.0)
-    assert {metric.kind for metric in metrics} == {"count", "psnr", "ratio"}
+    # display-referred beside linear: the synthetic display PSNR is 6 dB below the linear one, FLIP 1/PSNR
+    assert by_name["table2/car/ours_display_psnr"].value == pytest.approx(25.0)
+    assert by_name["table2/car/ours_flip"].value == pytest.approx(1 / 31.0) and by_name["table2/car/ours_flip"].kind == "flip"
+    assert by_name[f"table3/{UNSEEN}/mixed_display_psnr"].value == pytest.approx(16.0)
+    assert {metric.kind for metric in metrics} == {"count", "psnr", "flip", "ratio"}
+    # the Markdown puts the paper's PSNR beside our display-referred one, in tables of at most 8 columns
+    text = (tmp_path / "table2.md").read_text()
+    display = text[text.index("### Display-referred"):text.index("### Linear")]
+    assert "paper PSNR" in display and "FLIP noisy / ours / OIDN" in display
+    widths = {line.count("|") - 1 for line in text.splitlines() if line.startswith("|")}
+    assert max(widths) <= 8
 
 
 TINY = """
