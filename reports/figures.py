@@ -11,12 +11,14 @@
 * :func:`scene_figures` makes the Figures 5 and 7 panels of one scene from its dataset,
   :func:`markdown_links` the report's image links.
 
-Display convention (every image panel): linear radiance, NaN/inf replaced (display only,
-with a warning), clipped to [0, 1], then the sRGB transfer curve
-(:func:`kdtrace.imageio.srgb_encode`); no exposure change and no tone curve beyond that.
-PSNRs are those of :func:`reconstruction.metrics.psnr` (linear, clipped to [0, 1]) on the
-arrays as given, the tables' convention; an image with non-finite values gets none. They
-are PSNRs of the one image shown, not the pooled PSNRs over a split that the tables report.
+Display convention (every image panel of a comparison): the tables' display-referred
+tonemapping (:mod:`reconstruction.metrics`): linear radiance times the exposure that maps the
+reference's 99th-percentile luminance to 1 (one exposure per figure; 1 when the reference is
+all black), NaN/inf replaced (display only, with a warning), clipped to [0, 1], then the sRGB
+transfer curve. So a figure shows what its numbers measure. Under each panel: the display
+PSNR of that image (the paper's space) and the linear PSNR (clipped to [0, 1]); an image with
+non-finite values gets none. They are PSNRs of the one image shown, not the pooled PSNRs over
+a split that the tables report.
 
 **Crop rule.** Unless a crop is given, the enlarged region is the square window (side a
 quarter of the smaller image side, at least 8 pixels or the whole side) holding the most
@@ -132,8 +134,8 @@ def _check_shapes(images: Mapping[str, np.ndarray], shape: tuple[int, ...], what
             raise ValueError(f"image {name!r} has shape {image.shape[:2]} but {what} has {shape[:2]}")
 
 
-def display(image: Any, name: str = "image") -> np.ndarray:
-    """The displayed values of a linear image: finite, clipped to [0, 1], sRGB-encoded.
+def display(image: Any, name: str = "image", exposure: float = 1.0) -> np.ndarray:
+    """The displayed values of a linear image: finite, times ``exposure``, clipped to [0, 1], sRGB-encoded.
 
     NaN becomes 0, +inf 1 and -inf 0, with a ``RuntimeWarning`` naming the image and the
     count (for display only: no PSNR is computed for such an image).
@@ -157,25 +159,42 @@ def display(image: Any, name: str = "image") -> np.ndarray:
         warnings.warn(f"{name}: {bad} NaN/inf values replaced for display (NaN and -inf -> 0, +inf -> 1)",
                       RuntimeWarning, stacklevel=2)
         array = np.nan_to_num(array, nan=0.0, posinf=1.0, neginf=0.0)
-    return srgb_encode(np.clip(array, 0.0, 1.0))
+    return srgb_encode(np.clip(array * exposure, 0.0, 1.0))
 
 
-def panel_psnr(image: np.ndarray, reference: np.ndarray) -> float:
-    """:func:`reconstruction.metrics.psnr` of ``image`` against ``reference``, dB; NaN if either is non-finite."""
-    from reconstruction.metrics import psnr
+def figure_exposure(reference: np.ndarray) -> float:
+    """The display exposure of a figure: :func:`reconstruction.metrics.auto_exposure` of its reference,
+    1 when the reference is all black or not finite (then nothing is exposed)."""
+    from reconstruction.metrics import auto_exposure
+
+    try:
+        return auto_exposure(reference)
+    except ValueError:
+        return 1.0
+
+
+def panel_psnr(image: np.ndarray, reference: np.ndarray, exposure: float | None = None) -> float:
+    """PSNR of ``image`` against ``reference``, dB: linear clipped to [0, 1] (:func:`reconstruction.metrics.psnr`),
+    or of the displayed images with ``exposure``; NaN if either is non-finite."""
+    from reconstruction.metrics import psnr, to_display
 
     if not (np.all(np.isfinite(image)) and np.all(np.isfinite(reference))):
         return math.nan
-    return psnr(image, reference)
+    if exposure is None:
+        return psnr(image, reference)
+    return psnr(to_display(image, exposure), to_display(reference, exposure))
 
 
-def psnr_label(value: float) -> str:
-    """The text under a panel: ``"PSNR 31.42 dB"``, ``"PSNR inf dB (identical)"`` or ``"PSNR n/a (non-finite)"``."""
+def psnr_label(value: float, display_value: float | None = None) -> str:
+    """The text under a panel: ``"PSNR 31.42 dB"`` (linear), with the display PSNR first when given
+    (``"display 24.10 dB · linear 31.42 dB"``), ``"PSNR inf dB (identical)"`` or ``"PSNR n/a (non-finite)"``."""
     if math.isnan(value):
         return "PSNR n/a (non-finite)"
     if math.isinf(value):
         return "PSNR inf dB (identical)"
-    return f"PSNR {value:.2f} dB"
+    if display_value is None:
+        return f"PSNR {value:.2f} dB"
+    return f"display {display_value:.2f} dB · linear {value:.2f} dB"
 
 
 def detail_energy(reference: Any) -> np.ndarray:
@@ -348,9 +367,14 @@ def _named_images(images: Mapping[str, Any], what: str) -> dict[str, np.ndarray]
     return {str(name): as_rgb(image, f"image {name!r}") for name, image in images.items()}
 
 
-def _scored(images: dict[str, np.ndarray], reference: np.ndarray) -> tuple[dict[str, float], dict[str, str]]:
+def _scored(images: dict[str, np.ndarray], reference: np.ndarray,
+            exposure: float | None = None) -> tuple[dict[str, float], dict[str, str]]:
+    """Linear PSNR per image, and the labels (with the display PSNR first when an ``exposure`` is given)."""
     scores = {name: panel_psnr(image, reference) for name, image in images.items()}
-    return scores, {name: psnr_label(value) for name, value in scores.items()}
+    if exposure is None:
+        return scores, {name: psnr_label(value) for name, value in scores.items()}
+    shown = {name: panel_psnr(image, reference, exposure) for name, image in images.items()}
+    return scores, {name: psnr_label(scores[name], shown[name]) for name in images}
 
 
 def training_curves(histories: Mapping[str, Sequence[Mapping[str, float]]], path: str | Path) -> Path:
@@ -455,10 +479,11 @@ def denoising_panel(images: Mapping[str, Any], reference: Any, path: str | Path,
     if reference_label in named:
         raise ValueError(f"an image is named like the reference panel, {reference_label!r}")
     crop = auto_crop(reference) if crop is None else check_crop(crop, *reference.shape[:2])
-    scores, labels = _scored(named, reference)
-    shown = {name: display(image, name) for name, image in named.items()}
-    shown[reference_label] = display(reference, reference_label)
-    labels_shown = {**labels, reference_label: "(reference)"}
+    exposure = figure_exposure(reference)
+    scores, labels = _scored(named, reference, exposure)
+    shown = {name: display(image, name, exposure) for name, image in named.items()}
+    shown[reference_label] = display(reference, reference_label, exposure)
+    labels_shown = {**labels, reference_label: f"(reference; exposure {exposure:.3g})"}
     written = _comparison(shown, labels_shown, crop, path, title)
     return Panel(written, scores, labels, crop)
 
@@ -505,11 +530,13 @@ def superres_panel(low: Any, bicubic: Any, ours: Any, reference: Any, path: str 
     if low.shape[:2] != (height // 2, width // 2) or height % 2 or width % 2:
         raise ValueError(f"low must be half the reference's size {height}x{width}, got {low.shape[:2]}")
     crop = auto_crop(reference) if crop is None else check_crop(crop, height, width)
-    scores, labels = _scored(named, reference)
+    exposure = figure_exposure(reference)
+    scores, labels = _scored(named, reference, exposure)
     input_name = f"input {low.shape[0]}x{low.shape[1]}"
-    shown = {input_name: display(low, "low"), **{name: display(image, name) for name, image in named.items()},
-             "reference": display(reference, "reference")}
-    labels_shown = {input_name: "(half size)", **labels, "reference": "(reference)"}
+    shown = {input_name: display(low, "low", exposure),
+             **{name: display(image, name, exposure) for name, image in named.items()},
+             "reference": display(reference, "reference", exposure)}
+    labels_shown = {input_name: "(half size)", **labels, "reference": f"(reference; exposure {exposure:.3g})"}
     written = _comparison(shown, labels_shown, crop, path, title, scales={input_name: 0.5})
     return Panel(written, scores, labels, crop)
 
@@ -570,10 +597,11 @@ def pipeline_panel(images: Mapping[str, Any], reference: Any, path: str | Path,
     _check_shapes(named, reference.shape, "the reference")
     if reference_label in named:
         raise ValueError(f"a stage is named like the reference panel, {reference_label!r}")
-    scores, labels = _scored(named, reference)
-    shown = {name: display(image, name) for name, image in named.items()}
-    shown[reference_label] = display(reference, reference_label)
-    labels_shown = {**labels, reference_label: "(reference)"}
+    exposure = figure_exposure(reference)
+    scores, labels = _scored(named, reference, exposure)
+    shown = {name: display(image, name, exposure) for name, image in named.items()}
+    shown[reference_label] = display(reference, reference_label, exposure)
+    labels_shown = {**labels, reference_label: f"(reference; exposure {exposure:.3g})"}
     extras: dict[str, float] = {}
     draw = None
     if difference is not None:

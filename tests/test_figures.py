@@ -16,7 +16,7 @@ import pytest
 import torch
 from matplotlib.image import imread
 
-from reconstruction.metrics import psnr
+from reconstruction.metrics import psnr, to_display
 from reports import figures
 
 SIDE = 32
@@ -87,9 +87,11 @@ def test_denoising_panel_writes_a_png_with_the_metrics_psnrs(scene_images, tmp_p
     height = round(2 * figures.PANEL_INCHES * figures.DPI + 0.3 * figures.DPI)
     assert _png_shape(panel.path) == (height, round(columns * figures.PANEL_INCHES * figures.DPI))
     assert list(panel.psnr) == list(images)
+    exposure = figures.figure_exposure(reference)
     for name, image in images.items():
         assert panel.psnr[name] == psnr(image, reference)
-        assert panel.labels[name] == f"PSNR {psnr(image, reference):.2f} dB"
+        shown = psnr(to_display(image, exposure), to_display(reference, exposure))
+        assert panel.labels[name] == f"display {shown:.2f} dB · linear {psnr(image, reference):.2f} dB"
     assert panel.crop == figures.auto_crop(reference)
 
 
