@@ -39,7 +39,6 @@ import dataclasses
 import io
 import json
 import math
-import sys
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -103,20 +102,6 @@ def architecture(model: nn.Module) -> dict[str, Any]:
     """Name and constructor arguments of ``model`` (its ``config`` property when it has one)."""
     config = getattr(model, "config", None)
     return dict(config) if isinstance(config, dict) else {"architecture": type(model).__name__, "kwargs": {}}
-
-
-def networks_fingerprint() -> str:
-    """Digest of the source that defines, trains and runs the networks and their datasets.
-
-    Part of the key of every cached measurement made with the networks (the sweep's and the
-    §6.4 pipeline's rows): a model cached under the same profile but trained or evaluated by
-    other code is another model, so those rows are measured again.
-    """
-
-    from kdtrace.cache import source_fingerprint
-    from reconstruction import _blend_kernels, blend, data, hdr, inference, loss, models
-
-    return source_fingerprint(models, loss, data, hdr, inference, blend, _blend_kernels, sys.modules[__name__])
 
 
 def parameter_count(model: nn.Module) -> int:

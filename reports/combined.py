@@ -16,7 +16,7 @@ the RMSE of the denoising and superresolution RMSE's ... and solving for PSNR"):
 * bicubic upsampling instead of the net, for scale.
 
 Seconds per stage are warm and the shortest of
-:data:`reports.error_time.TIMING_REPEATS` runs (the render: the kernel's wall time; each
+:data:`reports.timing.TIMING_REPEATS` runs (the render: the kernel's wall time; each
 network: after a warm-up call on the same input). The paper's estimated PSNR and its
 one-core total seconds (512x512 render from Table 1 + Table 6 network times) are printed
 beside ours where our scene stands in for one of the paper's.
@@ -42,13 +42,11 @@ from kdtrace.cache import atomic_write_bytes
 from kdtrace.config import Config
 from kdtrace.provenance import stamp
 from reports.error_time import (
-    TIMING_REPEATS,
     Reconstruction,
     denoise_frame,
     load_note,
     run_cli,
     scene_rows,
-    shortest,
     superresolve_frame,
     timed_reconstruction,
 )
@@ -58,6 +56,7 @@ from reports.paper_figures import (
     COMBINED_ESTIMATES,
     COMBINED_SPP,
 )
+from reports.timing import TIMING_REPEATS, shortest
 
 #: Bump when what a row measures changes: cached rows become stale.
 ROW_VERSION = 2

@@ -85,11 +85,10 @@ from kdtrace.provenance import stamp
 from reports.metrics import Metric, write_metrics
 from reports.notes import ReportNote
 from reports.paper_figures import ACCEPTABLE_PSNR
+from reports.timing import TIMING_REPEATS, shortest
 
 #: Bump when what a row measures changes: cached rows become stale.
 ROW_VERSION = 5
-#: Every time is the shortest of this many runs.
-TIMING_REPEATS = 3
 #: The methods, in table order, with their labels.
 METHODS = {
     "kdtrace": "ours, path tracer",
@@ -363,35 +362,6 @@ def headline(points: pd.DataFrame, spp: int, pipeline: str, reference: str = "mi
 
 
 # ------------------------------------------------------------------ measuring
-def shortest(run: Callable[[], Any], repeats: int = TIMING_REPEATS, warmup: int = 1,
-             seconds_of: Callable[[Any], float] | None = None) -> tuple[Any, float]:
-    """Call ``run`` ``warmup`` times untimed, then ``repeats`` times; the last result and the shortest time.
-
-    Parameters
-    ----------
-    run : callable
-        No arguments.
-    repeats, warmup : int
-    seconds_of : callable, optional
-        Seconds of one result (e.g. ``RenderResult.seconds``, the kernel's own time);
-        default the wall time of the call, ``time.perf_counter``.
-
-    Returns
-    -------
-    (object, float)
-        The last result and the shortest time, seconds.
-    """
-    for _ in range(warmup):
-        run()
-    best, result = math.inf, None
-    for _ in range(repeats):
-        started = time.perf_counter()
-        result = run()
-        elapsed = time.perf_counter() - started
-        best = min(best, elapsed if seconds_of is None else seconds_of(result))
-    return result, best
-
-
 @dataclass
 class Reconstruction:
     """The trained networks of one profile: a denoiser per scene and the superresolution net."""
@@ -796,7 +766,7 @@ def scene_rows(kind: str, version: int, measure_scene: Callable[..., dict], conf
     A row is cached in ``out_dir/rows/KIND/SCENE.json`` under a content key of the scene,
     ``version``, :data:`TIMING_REPEATS`, the report and reconstruction profiles, the
     KD-tree and render settings, and the source of the renderer and (with ``networks``) of the
-    networks (:func:`reconstruction.train.networks_fingerprint`). A reused row is announced with the date it was
+    networks (:func:`reconstruction.fingerprint.networks_fingerprint`). A reused row is announced with the date it was
     measured; each new row is written atomically as soon as it is measured, so an
     interrupted run resumes at the next unfinished scene. The networks
     (:class:`Reconstruction`) are trained or loaded only when some row must be measured.
@@ -824,7 +794,7 @@ def scene_rows(kind: str, version: int, measure_scene: Callable[..., dict], conf
         One row per scene, in the profile's order.
     """
     from kdtrace.render import renderer_fingerprint  # imported when measuring, as render is
-    from reconstruction.train import networks_fingerprint
+    from reconstruction.fingerprint import networks_fingerprint
 
     profile = config.profile(profile_name)
     recon = config.reconstruction.profile(profile.reconstruction_profile)

@@ -16,7 +16,7 @@ each scene of the profile's ``sensitivity_scenes`` is built twice over:
 
 For each recipe the naive and local-branch trees' references, bytes and speed on the
 Table 1 ray sets (one primary frame, the incoherent rays) are measured, the four trees
-taking turns in every timed round (:func:`reports.table1.interleaved_seconds`); local/naive
+taking turns in every timed round (:func:`reports.timing.interleaved_seconds`); local/naive
 is the median of the per-round ratios. Frames are not path traced here (Table 1 does that
 for ``ours``).
 
@@ -45,6 +45,7 @@ from kdtrace.provenance import machine
 from kdtrace.scenes import load_scene
 from reports.metrics import Metric
 from reports.paper_figures import TABLE1
+from reports.timing import interleaved_seconds, paired_speedup, timing_ray_sets
 
 #: Version of the row layout; rows of another version are measured again.
 ROW_VERSION = 1
@@ -67,7 +68,6 @@ def _key(name: str, config: Config, profile_name: str) -> str:
 
 def measure_row(name: str, config: Config, profile_name: str) -> dict:
     """Build both recipes' trees for one scene and time them on Table 1's ray sets."""
-    from reports.table1 import interleaved_seconds, paired_speedup, timing_ray_sets
 
     profile = config.profile(profile_name)
     scene = load_scene(name)

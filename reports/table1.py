@@ -45,7 +45,7 @@ from kdtrace.cache import atomic_write_bytes, content_key
 from kdtrace.config import Config
 from kdtrace.kdtree import VARIANTS, build_kdtree
 from kdtrace.provenance import machine
-from kdtrace.rays import camera_rays, random_rays, shadow_rays
+from kdtrace.rays import shadow_rays
 from kdtrace.render import render, renderer_fingerprint
 from kdtrace.scenes import load_scene
 from references.agreement import OURS_EXACT, UNEXPLAINED, WRONG, check_scene, format_table
@@ -54,11 +54,10 @@ from reports import build_scaling, sensitivity
 from reports.metrics import Metric, write_metrics
 from reports.notes import ReportNote
 from reports.paper_figures import TABLE1
+from reports.timing import TIMING_ROUNDS, interleaved_seconds, paired_speedup, timing_ray_sets
 
 #: Version of the row layout; rows measured with another version are measured again.
 ROW_VERSION = 9
-#: Timed rounds per ray set (each times every intersector once; medians), after one warm-up call.
-TIMING_ROUNDS = 7
 #: Frame renders per tree, in alternating order (naive-local, local-naive, ...): even, so
 #: the order effect of back-to-back renders on a shared machine cancels.
 FRAME_REPEATS = 4
@@ -76,34 +75,6 @@ def agreement_fields(agreement) -> dict:
             "wrong": int(agreement[WRONG].sum()), "ours_exact": int(agreement[OURS_EXACT].sum()),
             "agreement_table": format_table(agreement), "agreement_counts": agreement.to_dict("records")}
 
-def interleaved_seconds(intersectors: dict, origins: np.ndarray, directions: np.ndarray,
-                        rounds: int = TIMING_ROUNDS, tmax: np.ndarray | None = None) -> dict[str, list[float]]:
-    """Seconds of ``intersect`` (or, given ``tmax``, ``occluded``) per intersector and round,
-    the intersectors taking turns.
-
-    Every intersector is called once on a few rays first (compilation, scene commit: never
-    timed). Then each round times every intersector once, in an order rotated by one each
-    round, so that a burst of load from other processes hits all of them alike and the
-    per-round ratios stay meaningful on a shared machine.
-    """
-    def query(intersector, count):
-        if tmax is None:
-            return intersector.intersect(origins[:count], directions[:count])
-        return intersector.occluded(origins[:count], directions[:count], tmax[:count])
-
-    for intersector in intersectors.values():
-        query(intersector, 64)
-    names = list(intersectors)
-    seconds: dict[str, list[float]] = {name: [] for name in names}
-    for index in range(rounds):
-        shift = index % len(names)
-        for name in names[shift:] + names[:shift]:
-            started = time.perf_counter()
-            query(intersectors[name], len(origins))
-            seconds[name].append(time.perf_counter() - started)
-    return seconds
-
-
 class CameraPackets:
     """A tree that traces rays as the path tracer traces its camera rays: 16 consecutive rays a packet."""
 
@@ -116,11 +87,6 @@ class CameraPackets:
     @property
     def last_counters(self):
         return self.tree.last_counters
-
-
-def paired_speedup(slow: list[float], fast: list[float]) -> float:
-    """Median over rounds of ``slow / fast`` seconds (> 1 when ``fast`` is faster)."""
-    return statistics.median(s / f for s, f in zip(slow, fast, strict=True))
 
 
 def frame_times(scene, trees: dict, width: int, height: int, spp: int, max_depth: int, seed: int,
@@ -155,22 +121,6 @@ def frame_times(scene, trees: dict, width: int, height: int, spp: int, max_depth
             "frame_local_over_naive": paired_speedup(seconds["naive"], seconds["local"]),
             "frame_paths": int(local.stats["paths"]),
             "frame_differing_pixels": int((naive.rgb != local.rgb).any(axis=-1).sum())}
-
-
-def timing_ray_sets(scene, profile) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    """The timed rays of a scene: ``primary`` (one jittered frame at the profile's size and spp) and ``incoherent``.
-
-    The frame's rays come pixel after pixel, each pixel's samples together, the order in
-    which the path tracer traces them (with samples in separate passes instead, 16
-    consecutive rays span 16 pixels, and bunny's camera-ray packets ran at 0.85x single
-    rays where they run at 1.07x in this order; 2026-12-05).
-    """
-    frame = [camera_rays(scene.camera, profile.frame_width, profile.frame_height, jitter=True,
-                         rng=np.random.default_rng(profile.seed + s)) for s in range(profile.frame_spp)]
-    return {
-        "primary": tuple(np.stack([f[i] for f in frame], axis=1).reshape(-1, 3) for i in range(2)),
-        "incoherent": random_rays(scene, profile.timing_rays, profile.seed),
-    }
 
 
 def time_occlusion(scene, trees: dict, embree, profile) -> dict[str, float]:
