@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import json
 import math
-import time
 
 import numpy as np
 import pandas as pd
@@ -160,17 +159,12 @@ def test_generate_end_to_end_and_reuse(tmp_path, monkeypatch, shared_scenes):
     monkeypatch.setenv("KDTRACE_CACHE", str(tmp_path / "cache"))
     (tmp_path / "tiny.toml").write_text(TINY)
     config = load_config(tmp_path / "tiny.toml")
-    started = time.perf_counter()
     metrics = rt.generate(config, "tiny", tmp_path / "out", progress=False)
-    first = time.perf_counter() - started
     assert "made in this run: dataset cbox-original" in (tmp_path / "out" / "table2.md").read_text()
     figures = (tmp_path / "out" / "figures.md").read_text()
     for stem in ("training", "cbox-original-denoising", "cbox-original-superres"):
         assert f"figures/{stem}.png" in figures and (tmp_path / "out" / "figures" / f"{stem}.png").is_file()
-    started = time.perf_counter()
     again = rt.generate(config, "tiny", tmp_path / "out", progress=False)
-    second = time.perf_counter() - started
-    print(f"\n[tiny] first run {first:.1f} s, rerun {second:.1f} s")
     table2 = (tmp_path / "out" / "table2.md").read_text()
     assert "Reused from the cache: 10 of 10 datasets and models." in table2  # the refined test references too
     precision, why = resolve_precision(config.reconstruction.profile("tiny").precision)
@@ -193,7 +187,6 @@ def test_generate_end_to_end_and_reuse(tmp_path, monkeypatch, shared_scenes):
     assert "the paper's network (95107 parameters) denoising the noisy colour divided by the albedo" in table2
     assert {m.name for m in metrics} >= {"table2/cbox-original/normal_depth_test_psnr",
                                          "table2/cbox-sphere/demodulated_test_psnr"}
-    assert second < first
     psnrs = {m.name: m.value for m in metrics if m.kind == "psnr"}
     assert psnrs == {m.name: m.value for m in again if m.kind == "psnr"}  # same cached models, same numbers
     assert {m.name for m in read_metrics(tmp_path / "out" / "metrics" / "reconstruction.json")} == {m.name for m in again}
