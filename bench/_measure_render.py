@@ -12,12 +12,12 @@ How to use (the pytest-benchmark suite in ``bench/test_bench_render.py`` does th
 
 Three measurements, all with ``max_depth`` = :data:`MAX_DEPTH` (the paper's setting):
 
-- **throughput** (issue 3, section 5): paths/s of our path tracer (``aux=False``, local
+- **throughput**: paths/s of our path tracer (``aux=False``, local
   tree) and of Mitsuba's plain ``path`` integrator in ``llvm_ad_rgb``, same scene,
   camera, resolution, spp and depth. Mitsuba's scene is converted and rendered once
   before timing (scene loading and JIT compilation are never timed); our kernel
   compilation is excluded by ``render`` itself.
-- **specialisation** (issue 3, section 2): the kernel specialised for the scene's
+- **specialisation**: the kernel specialised for the scene's
   features against the general kernel (``features=ALL_FEATURES``).
 - **frame** (the paper's Table 1 time rows): a :data:`FRAME_SIZE`, :data:`FRAME_SPP` spp
   frame on the ``naive`` and on the ``local`` tree.
@@ -64,7 +64,7 @@ THROUGHPUT_SIZE, THROUGHPUT_SPP = (256, 256), 8
 FRAME_SIZE, FRAME_SPP = (512, 512), 4
 RENDERERS = ("kdtrace", "mitsuba")
 KERNELS = ("specialised", "general")
-#: The diffuse-only scene the specialisation benchmark always includes (issue 3, section 2).
+#: The diffuse-only scene the specialisation benchmark always includes.
 SPECIALISATION_SCENE = "cbox-original"
 ROUNDS, WARMUP_ROUNDS = 3, 1
 #: Alternating (AB, BA, ...) render pairs behind each paired ratio (even: cancels the order effect).

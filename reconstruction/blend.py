@@ -1,7 +1,7 @@
 """The denoiser blended with its noisy input, one weight per spp fitted on validation views.
 
 A denoiser trained at one input spp (the paper's 4) over-smooths inputs that are already
-clean: at 64 spp our quick per-scene denoisers lose 1-8 dB to their own input (issue 11).
+clean: at 64 spp our quick per-scene denoisers lose 1-8 dB to their own input.
 The paper's network stays the measured object; this is the documented variant beside it,
 ``ours + denoiser, blended``:
 

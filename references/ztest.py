@@ -1,4 +1,4 @@
-"""Statistical agreement of our renders with Mitsuba 3 references (issue 3, section 4).
+"""Statistical agreement of our renders with Mitsuba 3 references.
 
 How to use::
 

@@ -1,4 +1,4 @@
-"""Run time against error (issue 5, section 2): our pipelines against brute-force Mitsuba.
+"""Run time against error: our pipelines against brute-force Mitsuba.
 
 For each reconstruction scene of a profile, at ``sweep_width`` x ``sweep_height`` from the
 scene's default camera, the error of five methods against a Mitsuba reference of

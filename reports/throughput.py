@@ -1,4 +1,4 @@
-"""Renderer throughput: our path tracer's paths/s against Mitsuba 3's, in one run (issue 12).
+"""Renderer throughput: our path tracer's paths/s against Mitsuba 3's, in one run.
 
 For each reconstruction scene of a profile (the scenes of the run-time-against-error sweep)
 and each max_depth of :data:`DEPTHS`, both renderers render the scene's camera view at
@@ -175,7 +175,7 @@ def generate(config: Config, profile_name: str, out_dir: str | Path, fresh: bool
             f"{machine['date']}. Each scene's camera view at {SIZE}x{SIZE}, {SPP} spp: our path tracer (local-branch "
             f"tree, no auxiliary buffers, the kernel's wall time) against Mitsuba's `path` integrator on the same scene "
             f"(`mi.render` and the copy to NumPy). After one untimed render of each, {ROUNDS} rounds alternate the two; "
-            f"ours / Mitsuba is the median of the rounds' ratios of paths per second. Targets: issue 12 (at least "
+            f"ours / Mitsuba is the median of the rounds' ratios of paths per second. Targets: the project's (at least "
             f"{TARGETS[1]} at max_depth 1, {TARGETS[3]} at max_depth 3). The last column checks that both estimate the "
             f"same image: the difference of their mean radiances in standard errors (limit {MEAN_SIGMAS}). Seed "
             f"{profile.seed}. {load_note(rows)}\n\n"

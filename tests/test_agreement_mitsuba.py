@@ -1,4 +1,4 @@
-"""Proof of agreement with Mitsuba 3 (issue 3, section 4): per-pixel Z-tests and relMSE slopes.
+"""Proof of agreement with Mitsuba 3: per-pixel Z-tests and relMSE slopes.
 
 Statistics on synthetic data first (known answers), then our path tracer against
 Mitsuba 3 references rendered by ``references.mitsuba.render_reference`` (cached in the

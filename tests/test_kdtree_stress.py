@@ -285,7 +285,7 @@ def test_planar_scenes_with_tmin(case, config, seed, ray_kind, tmin_fraction):
     seed=st.integers(0, 2**16),
 )
 def test_rays_in_split_planes_through_shared_edges(case, config, seed):
-    """Rays lying exactly in a split plane through edges lying in it (issue 13): the nearest
+    """Rays lying exactly in a split plane through edges lying in it: the nearest
     hit may be a triangle that only touches the plane from the side the ray does not start in."""
     run_case(case, config, "split_plane_edge", 400, seed)
 
@@ -336,7 +336,7 @@ def test_direction_magnitudes_and_tiny_components(case, config, seed, ray_kind, 
 def fin_scene() -> Scene:
     """A fin standing on the plane y = 1 (its edge (0,1,-1)-(0,1,1) lies in the plane), a wall
     behind it at x = 3, and a layer of small triangles on each side of y = 1 that makes y = 1
-    the tree's split plane (issue 13: the nearest hit lost for rays lying in a split plane)."""
+    the tree's split plane (the nearest hit once lost for rays lying in a split plane)."""
     triangles = [[[0, 1, -1], [0, 1, 1], [0, 2, 0]], [[3, 0, -2], [3, 0, 2], [3, 3, 0]]]
     for i in range(6):
         for k in range(6):

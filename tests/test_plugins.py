@@ -1,4 +1,4 @@
-"""Plug-ins (issue 14): the example package through check-embree, bad plug-ins' errors, entry points.
+"""Plug-ins: the example package through check-embree, bad plug-ins' errors, entry points.
 
 The example package (``examples/kdtrace-example-plugins``) is put on ``sys.path``
 rather than installed, and named by ``module:factory``; entry-point lookup is tested

@@ -1,4 +1,4 @@
-"""Reconstruction networks, loss, HDR transform and fast inference (issue 4, §1 and §5)."""
+"""Reconstruction networks, loss, HDR transform and fast inference."""
 
 from __future__ import annotations
 

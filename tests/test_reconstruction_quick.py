@@ -172,7 +172,7 @@ def test_pooled_psnr_is_not_the_mean_of_per_image_psnrs():
         evaluate.pooled([], [])
 
 
-#: The quick report's sweep spp (issue 11: never below the input at any of them).
+#: The quick report's sweep spp (never below the input at any of them).
 SWEEP_SPP = DEFAULT_CONFIG.profile("quick").sweep_spp
 
 
