@@ -6,7 +6,7 @@ rays with each test (``KDTree.watertight`` switched on the same object, so the t
 the rays are identical), after a warm-up that compiles both, in 7 rounds that alternate
 which test goes first; then 11 rounds of a 256x256, 4 spp path-traced frame. It prints
 the medians and watertight/MT speed (above 1: watertight faster), with the load average
-before and after. Figures of 2026-12-01 are in ``bench/README.md``.
+before and after. Its figures are in ``bench/README.md``.
 """
 
 from __future__ import annotations

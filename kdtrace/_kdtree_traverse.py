@@ -126,7 +126,7 @@ def watertight_decision(a_x, a_y, a_z, b_x, b_y, b_z, c_x, c_y, c_z, okx, oky, o
     # One branch on the combined outcome, not an early out per condition: a random ray's
     # edge signs are unpredictable, and the mispredicted early outs cost more than the
     # arithmetic they skip (incoherent rays 9-12% faster on cbox-original and car, one
-    # thread, 2026-12-05). Same results: the conditions are the same.
+    # thread). Same results: the conditions are the same.
     inside = not (((w0 < 0.0) | (w1 < 0.0) | (w2 < 0.0)) & ((w0 > 0.0) | (w1 > 0.0) | (w2 > 0.0)))
     det = w0 + w1 + w2
     t_scaled = (w0 * az + w1 * bz + w2 * cz) * sz
@@ -221,7 +221,7 @@ def span_hits(span_corners, first, count, okx, oky, okz, kx, ky, kz, sx, sy, sz,
     triangles in one pass of 8 float64 lanes (zmm); with the exact count it took a span of 8
     in two passes of 4 lanes and a span of 1-3 in scalar code. Frames 1.06x faster on
     cbox-original and 1.03x on cbox-sphere, car and Crytek Sponza unchanged (256x256, 8 spp,
-    max_depth 3, 2 threads, separate processes, 3 rounds, 2026-12-05). Same hits.
+    max_depth 3, 2 threads, separate processes, 3 rounds). Same hits.
     """
     mask = np.uint64(0)
     n = np.uint64(count)
@@ -307,12 +307,12 @@ def trace_ray(
     flattened, and ``splits`` its float32 view: node ``i`` is words ``2 i`` and ``2 i + 1``.
     Node indices are unsigned and the array flat, so an index costs no negative-index
     wraparound and no multiply by a run-time row stride (measured 11-21% faster on bunny,
-    Sponza and cbox-sphere, incoherent and shadow rays, 2 threads, 2026-12-02).
+    Sponza and cbox-sphere, incoherent and shadow rays, 2 threads).
     ``watertight`` picks :func:`intersect_triangle_watertight` over Möller–Trumbore.
     ``st_*`` are caller-owned stack buffers (no allocation per ray), and ``ray`` (float64,
     :data:`RAY_SCRATCH`) holds origin, direction and reciprocal direction, indexed by a
     node's axis (measured 9-12% faster than indexing tuples by the axis at run time,
-    bunny's random rays, one thread, 2026-12-02). With ``any_hit`` the segment is walked
+    bunny's random rays, one thread). With ``any_hit`` the segment is walked
     from its end (the far child of a split first): the answer, hit or no hit, is the same,
     and the triangle returned is any one in (tmin, tmax).
 
@@ -322,12 +322,12 @@ def trace_ray(
     of them at once, and tests one by one only from the first of those to the last: the same hit,
     the same counters, and a span without a hit (most of them on a shadow ray's way to a light, all but
     the last on a closest-hit walk) costs no branch per triangle. Measured against one-by-one
-    tests in separate processes (2026-12-05; 256x256, 8 spp, max_depth 3, 2 threads): frames
+    tests in separate processes (256x256, 8 spp, max_depth 3, 2 threads): frames
     1.08-1.09x faster with it for occlusion queries (car, cbox-original, cbox-sphere), and
     1.06x more on car and cbox-sphere with it for closest hits as well (cbox-original 1.01x,
     Crytek Sponza 1.02x). With the mask, a span of 16 costs about what one of 8 did, so the trees
     have leaves of 16 (``[kdtree] min_leaf_size``): frames against the commit before both
-    (separate processes, 3 rounds, 2026-12-05 evening) 1.07-1.08x faster at max_depth 3 on car,
+    (separate processes, 3 rounds) 1.07-1.08x faster at max_depth 3 on car,
     the Cornell boxes and Crytek Sponza, 0.90-0.95x at max_depth 1 (camera packets, which test a
     leaf's triangles lane by lane); Table 1's batch queries, which tested one by one, now use it
     too. Pass an empty array to test one by one.
@@ -427,7 +427,7 @@ def trace_ray(
                 # so the answer is the same in either order, but a shadow ray runs from a
                 # surface, where the tree is deepest, to a light in open space, and an
                 # occluder is met sooner from the light's side (measured on Table 1's shadow
-                # rays, 2 threads, 2026-12-02: 0.88x on cbox-original, 1.04-1.25x on
+                # rays, 2 threads: 0.88x on cbox-original, 1.04-1.25x on
                 # cbox-sphere, car and samurai, 1.5x on bunny, 2.0x on Crytek Sponza, 2.8x
                 # on dabrovic; nodes per ray 82 -> 55 on bunny, 24 -> 11.5 on dabrovic).
                 # ``any_hit`` is a constant in every inlined copy, so this folds away.
@@ -487,7 +487,7 @@ def _trace_rays(nodes, splits, refs, box, corners, span_corners, origins, direct
 
     :func:`trace_ray` is inlined once with ``any_hit`` a constant True and once False, so
     closest-hit rays run without the any-hit branches (with ``any_hit`` passed through,
-    they ran 2-8% slower once any-hit traversal differed, 2026-12-02). ``numba.literally``
+    they ran 2-8% slower once any-hit traversal differed). ``numba.literally``
     would do the same but dispatched every call anew (about 7 s per call). Compiled
     without numba's runtime: the traversal stack is in its stack frame and no reference to an
     array is counted (see :mod:`kdtrace._stack`).

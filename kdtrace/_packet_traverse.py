@@ -21,7 +21,7 @@ camera hits towards the light (8 a pixel, the renderer's order) a packet of 16 v
 nodes on cbox-original and 19.7 on car, where the 16 rays one by one visit 16 x 8.1 and
 16 x 10.6; the packet's lane work (about 700 cycles to load 16 rays, about 150 a split and
 90 a triangle for each shear axis in use, measured with the cycle counter) leaves 2.4x
-(cbox-original) and 1.6x (car) over one-by-one rays in a batch, 2026-12-05.
+(cbox-original) and 1.6x (car) over one-by-one rays in a batch.
 """
 
 from __future__ import annotations
@@ -73,7 +73,7 @@ def packet_scratch():
     so LLVM knows the buffers do not alias: from a separate function the returned arrays
     might, and the triangle test's lane loop (which writes the hit flags beside the closest
     hits) was not vectorised, which made camera packets no faster than single rays (0.82x on
-    cbox-original's camera rays, 2 threads, 2026-12-05).
+    cbox-original's camera rays, 2 threads).
     """
     return (stack_empty((4, 3, PACKET_SIZE), np.float64), stack_empty((10, PACKET_SIZE), np.float64),
             stack_empty((6, PACKET_SIZE), np.int64), stack_empty((STACK_SIZE, 3), np.int64),
@@ -103,7 +103,7 @@ def _load_lanes(box, origins, directions, n, watertight, lanes3, lanes, lane_int
     for operation (the same values bit for bit), but in lane loops without branches: their
     13 divisions a ray then run on vector registers. With one loop over the lanes calling
     those functions, loading a packet took about 700 cycles, most of them divisions
-    (cycle counter, 2026-12-05).
+    (cycle counter).
     """
     origin = lanes3[_ORIGIN]
     direction = lanes3[_DIRECTION]
@@ -211,7 +211,7 @@ def _test_triangle_uniform(tri, corners, kx, ky, kz, n, active, lanes3, lanes, l
     scalar test's, operation for operation, so its result is the same bit for bit. A first lane
     loop takes every lane's decision without the division (``watertight_decision``) and the
     triangle is done when no lane passes it: camera-ray frames 1.07-1.13x faster with leaves of 16
-    (car, the Cornell boxes, Crytek Sponza; separate processes, 3 rounds, 2026-12-05 19:53 UTC).
+    (car, the Cornell boxes, Crytek Sponza; separate processes, 3 rounds).
     """
     okx, oky, okz, shx, shy, shz, best = _lane_shears(lanes3, lanes)
     cax, cay, caz, cbx, cby, cbz, ccx, ccy, ccz = _permuted_corners(tri, corners, kx, ky, kz)
@@ -339,7 +339,7 @@ def trace_packet(nodes, splits, refs, box, corners, origins, directions, n, tmax
     :func:`packet_scratch` itself: the lane loops divide by zero on lanes they then
     discard (numba's Python error model would check every division, and it ran 1.8x
     slower), and with the buffers passed in from a caller LLVM must assume they alias
-    (1.8x slower again; Crytek Sponza's camera rays, one thread, 2026-12-04). Best in a
+    (1.8x slower again; Crytek Sponza's camera rays, one thread). Best in a
     function compiled with ``_nrt=False`` (see :mod:`kdtrace._stack`).
 
     ``origins`` and ``directions`` are (n, 3) float64; the tree arrays are those of

@@ -125,7 +125,7 @@ def turn_cos_sin(u):
     Written out instead of calling ``math.cos`` and ``math.sin`` (which LLVM merges into
     one libm ``sincos``): that call in the middle of the inlined path loop made the
     path tracer's frames slower, measured 1.025x on cbox-original and 1.01x on car (256x256,
-    8 spp, max_depth 3, separate processes, 5 rounds, 2026-12-05). ``u`` is reduced to the nearest quarter turn
+    8 spp, max_depth 3, separate processes, 5 rounds). ``u`` is reduced to the nearest quarter turn
     exactly (``4 u`` and its distance to an integer are exact in floating point), the
     remainder ``x`` in [-pi/4, pi/4] goes through the Taylor series, and the quarter turns
     swap and negate the pair without a branch.
@@ -258,8 +258,8 @@ def geometric_normals(corners):
     """(T, 3) float64 :func:`geometric_normal` of every triangle, bit for bit (the path tracer
     reads them instead of computing a cross product, a square root and three divisions per hit
     and per light sample: frames 1.03-1.05x faster on car, cbox-original and cbox-sphere at
-    max_depth 3, Crytek Sponza, lit by its sky only, 0.96-1.00x; separate processes, 3 rounds,
-    2026-12-05). NaN for a zero-area triangle, as computed at a hit (the tree holds none).
+    max_depth 3, Crytek Sponza, lit by its sky only, 0.96-1.00x; separate processes, 3 rounds).
+    NaN for a zero-area triangle, as computed at a hit (the tree holds none).
     24 bytes a triangle, 1.7 ms for Crytek Sponza's 262k, before a render's clock starts."""
     out = np.empty((corners.shape[0], 3))
     for tri in range(corners.shape[0]):
@@ -338,7 +338,7 @@ def last_ray_hit(emitters, sky, watertight, tree, emit_tri, tri_gnormal, ox, oy,
         return best_t, NO_RADIANCE
     # The escape query (no emitter hit, a sky) uses the vector test as well since its mask of hits
     # (Crytek Sponza's max_depth-3 frames 1.02x, car and cbox-original 0.99-1.00x, separate processes,
-    # 4 rounds, 2026-12-05 19:15 UTC); with the "any hit?" test of before they had been 4-5% slower.
+    # 4 rounds); with the "any hit?" test of before they had been 4-5% slower.
     _, blocker, _, _, _, _ = trace_ray(nodes, splits, refs, box, corners, span_corners, ox, oy, oz, dx, dy, dz, 0.0,
                                        best_t, True, watertight, st_node, st_ent, st_ext, ray)
     if blocker >= 0:
@@ -357,7 +357,7 @@ def last_ray_hit(emitters, sky, watertight, tree, emit_tri, tri_gnormal, ox, oy,
 #   emitter_selection  pick among several emitter triangles by a CDF (else emitter 0)
 #   aux                albedo, normal and depth of the first hit
 # They were numba literals (one machine code per combination, absent branches pruned) until
-# 2026-12-03: kernels for all features and for each scene's own ran at the same speed
+# Kernels for all features and for each scene's own ran at the same speed
 # (paired general/specialised seconds: medians 0.86-1.07, every round 0.63-1.23, on cbox-original,
 # cbox-sphere, car, Crytek Sponza and bunny, 256x256, 8 spp, max_depth 1 and 3), while each
 # combination cost 45-60 s of compilation on first use (13 of them in one CI run).
@@ -380,7 +380,7 @@ def path_sample(
     to ``sky_rgb``), and ``scratch`` the traversal's ``(st_node, st_ent, st_ext, ray)``.
     They are tuples because CPython compiles a call of more than 30 arguments into
     ``f(*args)``, which numba cannot inline. Inlined into :func:`render_tile`, cbox-original
-    rendered 1.4x faster at max_depth 1 and 1.3x at 3 (2 threads, 2026-12-02).
+    rendered 1.4x faster at max_depth 1 and 1.3x at 3 (2 threads).
 
     The first hit's shadow ray is not traced here: it goes to row ``slot`` of ``deferred`` =
     ``(origins, directions, extra, slot)`` (origin, unit direction, and tmax followed by the
@@ -505,7 +505,7 @@ def path_sample(
                         shadow_tmax = hdist * (1.0 - SHADOW_EPSILON)
                         # f = power_heuristic(pdf_light, pdf_bsdf) * pdf_bsdf / pdf_light with
                         # pdf_light = area pdf * d^2 / cos_l, rewritten with one division
-                        # (cbox-original 1.004-1.01x with the reciprocals above, 2026-12-05).
+                        # (cbox-original 1.004-1.01x with the reciprocals above).
                         area = tri_emit_pdf[ltri] * dist * dist
                         pdf_bsdf = cos_o * _INV_PI
                         bsdf_cos = pdf_bsdf * cos_l
@@ -600,17 +600,17 @@ def render_tile(
     :func:`kdtrace._packet_traverse.occluded_packet`) or one by one, and the light of the
     unblocked ones is added to their paths: the same images either way. Frames with the
     shadow packets against without, separate processes, 3 rounds (256x256, 8 spp, max_depth 3,
-    2 threads, 2026-12-05): cbox-original and cbox-mirror 1.05x, car 1.02x, cbox-sphere 1.00x. The packet's buffers are
+    2 threads): cbox-original and cbox-mirror 1.05x, car 1.02x, cbox-sphere 1.00x. The packet's buffers are
     allocated here: with them passed in from the caller, LLVM must assume they alias and
-    the packet ran 1.8x slower (Crytek Sponza's camera rays, 2026-12-04).
+    the packet ran 1.8x slower (Crytek Sponza's camera rays).
 
     Compiled without numba's runtime (``_nrt=False``), so every buffer is on its stack
     (:func:`kdtrace._stack.stack_empty`) and no reference to an array is counted: the
     inlined :func:`path_sample` and traversals had made about two dozen atomic reference
     count calls per sample and per bounce, and without them the path tracer renders 1.86-2.10x
     faster at max_depth 1 and 1.13-1.17x at max_depth 3 on the Cornell boxes and car
-    (Crytek Sponza 1.21x and 1.08x; 256x256, 8 spp, 2 threads, alternating processes,
-    2026-12-05). Same images.
+    (Crytek Sponza 1.21x and 1.08x; 256x256, 8 spp, 2 threads, alternating processes).
+    Same images.
     """
     literally(watertight)
     tree = (nodes, splits, refs, box, corners, span_corners)
@@ -640,7 +640,7 @@ def render_tile(
     n_bounce = 0
     # Per-pixel sums, allocated once per tile and zeroed for each pixel: the same images,
     # and cbox-original at 1 spp, max_depth 3 rendered 1.05-1.07 instead of 0.88-0.97
-    # Mpaths/s with four allocations per pixel (8 spp and Sponza: within noise; 2026-12-02).
+    # Mpaths/s with four allocations per pixel (8 spp and Sponza: within noise).
     sum_l = stack_empty(3, np.float64)
     sum_l2 = stack_empty(3, np.float64)
     sum_a = stack_empty(3, np.float64)
@@ -649,7 +649,7 @@ def render_tile(
     hits = 0
     total = tile_w * tile_h * spp
     # The next sample's pixel and index, advanced by counting: three integer divisions per
-    # sample had made the packets' renders 3-10% slower than one-by-one (2026-12-04).
+    # sample had made the packets' renders 3-10% slower than one-by-one.
     i = tx0
     j = ty0
     s = 0

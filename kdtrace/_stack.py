@@ -3,7 +3,7 @@
 numba counts references to every array that crosses an inlined call, with an atomic
 ``NRT_incref``/``NRT_decref`` call pair that LLVM cannot remove: the path tracer made about
 two dozen such calls per sample and per bounce (a camera ray that missed the scene cost
-101 ns, 64 of them in reference counting; 2026-12-05, AVX-512 EPYC, one thread). A kernel
+101 ns, 64 of them in reference counting; AVX-512 EPYC, one thread). A kernel
 compiled with ``_nrt=False`` makes none, but then cannot allocate with ``np.empty``;
 :func:`stack_empty` gives it C-contiguous arrays in its own stack frame instead (no
 reference count, freed on return, and LLVM knows they alias nothing else, so loops over

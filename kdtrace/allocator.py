@@ -3,7 +3,7 @@
 glibc serves every block above its mmap threshold (at most 32 MiB) with a fresh ``mmap``
 and unmaps it on free, so a block that size is page-faulted in again on every use. The
 superresolution net's 1024x1024, 32-channel bf16 activations are 64 MiB each: their page
-faults were 70 ms of a 0.30 s frame (2 threads, AMD EPYC, idle, 2026-12-06), more than the
+faults were 70 ms of a 0.30 s frame (2 threads, AMD EPYC, idle), more than the
 whole of its first layer. PyTorch's CPU performance guide answers this with a caching
 allocator preloaded into the process (jemalloc or tcmalloc, ``LD_PRELOAD``); glibc's own
 ``mallopt`` gives the same reuse from inside the process, with no preload and no extra
@@ -12,7 +12,7 @@ package: large blocks come from the heap and freed memory stays there to be reus
 Only timed sections keep freed memory (:func:`freed_memory_retained`). For a whole process
 it cost too much: the heap never shrinks, and the standard report, holding it while it
 gathered the mixed model's 10 GB of training crops, was killed for lack of memory at 23 GB
-of 24 (2026-12-06); with glibc's defaults the same step fits.
+of 24; with glibc's defaults the same step fits.
 """
 
 from __future__ import annotations

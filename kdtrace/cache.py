@@ -55,7 +55,7 @@ def drop_stale_kernel_cache(kernels: ModuleType, *inlined_from: ModuleType) -> b
     numba decides whether a cached function is stale by its own source file only, so a
     kernel keeps running the old code of an edited function it inlines from another
     module (measured: renders timed after an edit of the packet traversal ran the code
-    before it, 2026-12-05). Each kernel module therefore keeps a stamp, the
+    before it). Each kernel module therefore keeps a stamp, the
     :func:`source_fingerprint` of itself and ``inlined_from``, beside numba's cache files;
     when it differs, the module's cache files are deleted and numba compiles afresh. Call
     it before any kernel of the module runs. Returns True when it deleted the cache.

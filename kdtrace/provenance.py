@@ -47,7 +47,7 @@ def cpu_isa() -> str:
 def cpu_kind() -> str:
     """CPU model and vector tier, e.g. ``"AMD EPYC [avx2]"``: one machine kind for the gate's
     baselines. The model name alone is not enough: VMs sold as "AMD EPYC" come with and
-    without AVX-512 (2026-12-02), and they train the networks differently (bf16 or fp32)."""
+    without AVX-512, and they train the networks differently (bf16 or fp32)."""
     return f"{cpu_model()} [{cpu_isa()}]"
 
 

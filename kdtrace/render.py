@@ -275,7 +275,7 @@ def _run(flags, packed, cam, width, height, spp, max_depth, rr_depth, seed, firs
     args = (*flags, *packed.values(), cam, width, height, spp, max_depth, rr_depth, np.uint64(seed), first_sample, tile_size,
             tile_stride(tiles), camera_packets, shadow_packets, last_ray_shortcut, rgb, variance, albedo, normal, depth, counts)
     # numba resolves a ``literally`` kernel's argument types anew on every call: 70-100 ms
-    # per call, measured 2026-12-02 on cbox-original (more than a whole 256x256 frame at
+    # per call, measured on cbox-original (more than a whole 256x256 frame at
     # 1 spp). Once a specialisation exists, its machine code is called directly.
     signature = tuple(numba.types.literal(a) if i in _LITERAL_ARGS else numba.typeof(a) for i, a in enumerate(args))
     compiled = kernels.render_tiles.overloads.get(signature)

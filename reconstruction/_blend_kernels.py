@@ -3,7 +3,7 @@
 :func:`reconstruction.blend.frame_weight_cap` needs, for a grid of blend weights, the clipped
 squared error of every 8x8 block of a frame, to resample the blocks (bootstrap) without
 evaluating the error again. Evaluated weight by weight that is 201 passes over a 512x512
-frame (0.27 s in numba, 2026-12-05, AVX-512 EPYC); most pixels never clip and contribute an
+frame (0.27 s in numba, AVX-512 EPYC); most pixels never clip and contribute an
 exact quadratic in the weight, so the kernel keeps three sums per block for them and
 evaluates only the clipped pixels weight by weight (0.04 s). ``tests/test_reconstruction_blend.py``
 checks it against the NumPy expression, clipped pixels included.

@@ -42,7 +42,7 @@ half's optimum ``w_h = 2 s / (2 s + e)`` (input variance ``s`` at the frame's sp
 error ``e``) gives the frame's as ``w_h / (2 - w_h)`` (:func:`frame_weight_cap`); where the
 denoiser also improves with more samples this is an under-estimate, so as a cap it only
 moves the blend towards the input. A single frame's estimate is noisy, and an over-estimate
-is what loses to the input (the quick car sweep frame at 32 spp, 2026-12-05: cap 0.18 where
+is what loses to the input (the quick car sweep frame at 32 spp: cap 0.18 where
 the frame's optimum was 0.08, 0.07 dB below the input), so the cap is the same
 :data:`BOUND_QUANTILE` lower bound as the validated weight: ``w_h`` is the weight on a grid of
 :data:`CAP_GRID` values minimising the error of :data:`BOOTSTRAP_SAMPLES` resamplings of the

@@ -7,8 +7,8 @@ response. The target's edge map is exactly in [0, 1] and the prediction's goes t
 the same affine map, so the edge term is a scaled MSE of the LoG responses: zero only
 when they agree, and an error in intensity counts as one. Normalising each map by its
 own range (a literal reading of the paper) makes the term blind to intensity and, at
-weight 0.3 against pixel errors 10-50 times smaller, it dominated training: measured on
-2026-12-01 (quick data with 4 camera positions, residual denoiser, test views), Sponza
+weight 0.3 against pixel errors 10-50 times smaller, it dominated training: measured
+(quick data with 4 camera positions, residual denoiser, test views), Sponza
 41.3 dB noisy -> 41.3 dB denoised with independent maps, 47.2 dB with the target's
 range; the Cornell box 37.2 -> 40.2 and 42.5 dB. The floor keeps constant or nearly
 constant targets safe: gradients stay finite, and (:data:`DENOISER_RANGE_FLOOR`) flat dark
@@ -45,7 +45,7 @@ EDGE_RANGE_FLOOR = 1e-4
 #: an all-black image scored 57× lower than the 4-spp input: the nets learned to darken (the
 #: demodulated net's lit Sponza surfaces came out at 17–29% of the reference). Chosen on the
 #: quick profile's validation views of cbox-original, car, crytek-sponza and cbox-sphere
-#: (2026-12-04; floors 1e-4, 0.01, 0.03, 0.1, 0.3): mean gain over the noisy input 1.89, 3.55,
+#: (floors 1e-4, 0.01, 0.03, 0.1, 0.3): mean gain over the noisy input 1.89, 3.55,
 #: 3.52, 3.71, 3.57 dB for the paper net and 1.32, 3.84, 3.91, 4.08 dB for the demodulated one.
 #: The profiles set it (``denoiser_edge_range_floor``); this is the value the standard and paper
 #: profiles use, and a test keeps the two in step.

@@ -82,7 +82,7 @@ DEMODULATION_EPSILON = 0.01
 #: Pixels whose largest albedo channel is below this are not demodulated (divided by 1): they
 #: show what has no diffuse albedo, emitters, the sky, the background and mirrors. Dividing the
 #: sky of crytek-sponza (radiance ~1, albedo 0) by 0.01 made it the whole of the loss and the
-#: net failed (27.3 dB on the standard test views, below its 35.9 dB input; 2026-12-04).
+#: net failed (27.3 dB on the standard test views, below its 35.9 dB input).
 DEMODULATION_FLOOR = 0.02
 
 
@@ -105,7 +105,7 @@ def remodulate(encoded: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
         the map continues linearly with its slope at 0, ``s·o``, so the loss always has a
         gradient: a clamp stopped training dead (all outputs negative, no gradient), and a
         straight-through clamp fed the edge loss gradients that did not lower it until the
-        weights grew without bound (quick data, 2026-12-04).
+        weights grew without bound (quick data).
     """
     positive = encoded.clamp_min(0.0)
     return torch.where(encoded >= 0, positive + torch.log(scale + (1.0 - scale) * torch.exp(-positive)),

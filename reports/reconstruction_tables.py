@@ -388,7 +388,7 @@ def _paper_name(scene: str) -> str:
 
 def _reused(stages: list[dict], name: str) -> str:
     """How a model came: "trained N s" in this run, else "reused (trained N s)"; N sums its
-    training epochs (the stage's wall time, or a bare "reused", in measurements before 2026-12-06)."""
+    training epochs (the stage's wall time, or a bare "reused", in measurements made before it was recorded)."""
     stage = next(s for s in stages if s["name"] == name)
     trained = stage.get("training_seconds")
     if not stage["reused"]:

@@ -96,7 +96,7 @@ def timing_ray_sets(scene, profile) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     The frame's rays come pixel after pixel, each pixel's samples together, the order in
     which the path tracer traces them (with samples in separate passes instead, 16
     consecutive rays span 16 pixels, and bunny's camera-ray packets ran at 0.85x single
-    rays where they run at 1.07x in this order; 2026-12-05).
+    rays where they run at 1.07x in this order).
     """
     frame = [camera_rays(scene.camera, profile.frame_width, profile.frame_height, jitter=True,
                          rng=np.random.default_rng(profile.seed + s)) for s in range(profile.frame_spp)]
