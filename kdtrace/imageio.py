@@ -80,7 +80,7 @@ def read_image(path: str | Path) -> tuple[np.ndarray, bool]:
 
             with Image.open(path) as opened:
                 mode_max = 65535.0 if opened.mode.startswith("I;16") or opened.mode == "I" else 255.0
-                image = srgb_decode(np.asarray(opened, dtype=np.float64) / mode_max)
+                image = srgb_decode(np.asarray(opened, dtype=np.float64) / mode_max).astype(np.float64)
         else:
             raise ValueError(f"{path}: unknown image type {suffix!r} (EXR, NPY, PNG or JPEG)")
     except (OSError, RuntimeError, TypeError) as error:
@@ -100,9 +100,9 @@ def read_image(path: str | Path) -> tuple[np.ndarray, bool]:
 
 
 def srgb_decode(encoded: np.ndarray) -> np.ndarray:
-    """Inverse of :func:`srgb_encode` on [0, 1]: sRGB-encoded values to linear."""
-    encoded = np.clip(np.asarray(encoded, dtype=np.float64), 0.0, 1.0)
-    return np.where(encoded <= 0.04045, encoded / 12.92, ((encoded + 0.055) / 1.055) ** 2.4)
+    """IEC 61966-2-1 sRGB decoding of values in [0, 1] (the inverse of :func:`srgb_encode`), float32, same shape."""
+    encoded = np.asarray(encoded, np.float32)
+    return np.where(encoded <= 0.04045, encoded / 12.92, ((encoded + 0.055) / 1.055) ** 2.4).astype(np.float32)
 
 
 def write_colour_map(path: str | Path, values: np.ndarray, colormap: str = "magma") -> Path:

@@ -36,6 +36,7 @@ from kdtrace import _kdtree_build, _kdtree_layout, _kdtree_traverse, _packet_tra
 from kdtrace import _render_kernels as kernels
 from kdtrace.cache import source_fingerprint
 from kdtrace.config import DEFAULT_CONFIG
+from kdtrace.imageio import srgb_decode
 from kdtrace.kdtree import KDTree, build_kdtree
 from kdtrace.rays import camera_basis
 from kdtrace.scene import Camera, Scene
@@ -146,7 +147,7 @@ def _load_texture(path: str) -> np.ndarray | None:
     except (OSError, ValueError) as error:
         warnings.warn(f"texture {path!r} cannot be read ({error}); using the flat albedo", stacklevel=4)
         return None
-    return np.where(srgb <= 0.04045, srgb / 12.92, ((srgb + 0.055) / 1.055) ** 2.4).astype(np.float32)
+    return srgb_decode(srgb)
 
 
 def _textures(scene: Scene) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -70,6 +70,7 @@ from kdtrace.cache import (
     save_npz,
 )
 from kdtrace.config import DEFAULT_CONFIG, DistributedConfig, ReconstructionProfile
+from kdtrace.imageio import srgb_decode
 from kdtrace.provenance import stamp
 from kdtrace.scene import Camera, Scene
 
@@ -625,12 +626,6 @@ def crops(dataset: Dataset, split: str, crop_size: int, crops_per_view: int, see
 
 
 # ------------------------------------------------------------------ superresolution
-def srgb_to_linear(srgb: np.ndarray) -> np.ndarray:
-    """IEC 61966-2-1 sRGB decoding of values in [0, 1] (float32, same shape)."""
-    srgb = np.asarray(srgb, np.float32)
-    return np.where(srgb <= 0.04045, srgb / 12.92, ((srgb + 0.055) / 1.055) ** 2.4).astype(np.float32)
-
-
 def photo(name: str) -> np.ndarray:
     """A photograph bundled with scikit-image as linear RGB float32 (H, W, 3) in [0, 1]."""
     import skimage.data
@@ -638,7 +633,7 @@ def photo(name: str) -> np.ndarray:
     image = getattr(skimage.data, name)()
     if image.ndim != 3 or image.shape[2] < 3:
         raise ValueError(f"skimage.data.{name} is not an RGB photograph")
-    return srgb_to_linear(image[..., :3] / 255.0)
+    return srgb_decode(image[..., :3] / 255.0)
 
 
 def degrade(target: np.ndarray, method: str = "area") -> np.ndarray:

@@ -75,7 +75,7 @@ def pooled(predictions: Sequence[np.ndarray], references: Sequence[np.ndarray]) 
     squared, count, per_image = 0.0, 0, []
     relative = {"relmse": 0.0, "smape": 0.0}
     display = {"squared": 0.0, "flip": 0.0} if all(np.ndim(r) == 3 and np.shape(r)[2] == 3 for r in references) else None
-    exposures = _exposures(references) if display is not None else []
+    own, exposures = _exposures(references) if display is not None else ([], [])
     for index, (prediction, reference) in enumerate(zip(predictions, references, strict=True)):
         prediction, reference = np.asarray(prediction, np.float64), np.asarray(reference, np.float64)
         if prediction.shape != reference.shape:
@@ -99,16 +99,17 @@ def pooled(predictions: Sequence[np.ndarray], references: Sequence[np.ndarray]) 
               "pixels": count, **{name: total / count for name, total in relative.items()}}
     if display is not None:
         result.update(_display_pooled(display["squared"] / count, display["flip"] / count))
-        result["black_references"] = sum(exposure is None for exposure in _exposures(references, fallback=False))
+        result["black_references"] = sum(exposure is None for exposure in own)
     return result
 
 
-def _exposures(references: Sequence[np.ndarray], fallback: bool = True) -> list[float | None]:
-    """Each view's display exposure (:func:`reconstruction.metrics.auto_exposure`).
+def _exposures(references: Sequence[np.ndarray]) -> tuple[list[float | None], list[float]]:
+    """Each view's own display exposure (:func:`reconstruction.metrics.auto_exposure`; None for an
+    all-black reference) and the exposure it is shown with.
 
     A view whose reference is entirely black has none of its own (a dataset may hold views that
-    no light reaches); with ``fallback`` it is shown with the median exposure of the others, so
-    that its errors still count. ValueError when no view has one.
+    no light reaches): it is shown with the median exposure of the others, so that its errors
+    still count. ValueError when no view has one.
     """
     from reconstruction import metrics
 
@@ -118,13 +119,11 @@ def _exposures(references: Sequence[np.ndarray], fallback: bool = True) -> list[
             own.append(metrics.auto_exposure(reference))
         except ValueError:
             own.append(None)
-    if not fallback:
-        return own
     defined = [exposure for exposure in own if exposure is not None]
     if not defined:
         raise ValueError(f"no display exposure: all {len(own)} references are black (or not finite)")
     median = float(np.median(defined))
-    return [median if exposure is None else exposure for exposure in own]
+    return own, [median if exposure is None else exposure for exposure in own]
 
 
 def _display_pooled(mean_squared: float, flip: float) -> dict[str, float]:
@@ -219,14 +218,15 @@ TEST_PHOTOS = ("motorcycle_left", "hubble_deep_field")
 
 def held_out_photo(name: str) -> np.ndarray:
     """One photograph of :data:`TEST_PHOTOS` as linear RGB float32 (H, W, 3) in [0, 1]."""
-    from reconstruction.data import photo, srgb_to_linear
+    from kdtrace.imageio import srgb_decode
+    from reconstruction.data import photo
 
     if name not in TEST_PHOTOS:
         raise ValueError(f"unknown test photo {name!r}; known: {', '.join(TEST_PHOTOS)}")
     if name == "motorcycle_left":
         import skimage.data
 
-        return srgb_to_linear(skimage.data.stereo_motorcycle()[0][..., :3] / 255.0)
+        return srgb_decode(skimage.data.stereo_motorcycle()[0][..., :3] / 255.0)
     return photo(name)
 
 

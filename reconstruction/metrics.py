@@ -135,15 +135,19 @@ def to_display(image, exposure: float) -> np.ndarray:
     return srgb_encode(np.asarray(image, dtype=np.float64) * exposure)
 
 
-def flip_map(test, reference, exposure: float = 1.0) -> tuple[np.ndarray, float]:
-    """LDR-FLIP error map (H, W) of the displayed images and its mean (see module docstring)."""
+def _displayed_flip(shown_test: np.ndarray, shown_reference: np.ndarray) -> tuple[np.ndarray, float]:
+    """LDR-FLIP error map (H, W) and its mean of two already displayed (H, W, 3) images."""
     import flip_evaluator
 
-    test, reference = _checked_pair(test, reference, rgb_only=True)
-    reference_srgb, test_srgb = (np.ascontiguousarray(to_display(image, exposure), dtype=np.float32)
-                                 for image in (reference, test))
+    reference_srgb, test_srgb = (np.ascontiguousarray(image, dtype=np.float32) for image in (shown_reference, shown_test))
     error_map, mean_error, _ = flip_evaluator.evaluate(reference_srgb, test_srgb, "LDR", applyMagma=False)
-    return np.asarray(error_map).reshape(test.shape[:2]), float(mean_error)
+    return np.asarray(error_map).reshape(shown_test.shape[:2]), float(mean_error)
+
+
+def flip_map(test, reference, exposure: float = 1.0) -> tuple[np.ndarray, float]:
+    """LDR-FLIP error map (H, W) of the displayed images and its mean (see module docstring)."""
+    test, reference = _checked_pair(test, reference, rgb_only=True)
+    return _displayed_flip(to_display(test, exposure), to_display(reference, exposure))
 
 
 def flip(test, reference, exposure: float = 1.0) -> float:
@@ -176,7 +180,7 @@ def display_metrics(test, reference, exposure: float | None = None, name: str = 
               "display_rmse": rmse(shown_test, shown_reference)}
     if min(test.shape[:2]) >= 7:
         result["display_ssim"] = ssim(shown_test, shown_reference)
-    result["flip"] = flip(test, reference, exposure)
+    result["flip"] = _displayed_flip(shown_test, shown_reference)[1]
     return result
 
 

@@ -10,6 +10,7 @@ import pytest
 
 import kdtrace.cache
 from kdtrace.config import DEFAULT_CONFIG, load_config
+from kdtrace.imageio import srgb_decode
 from kdtrace.scenes import load_scene
 from reconstruction import data
 
@@ -197,7 +198,7 @@ def test_photos_are_bundled_linear_rgb():
     for name in data.TRAIN_PHOTOS + data.VALIDATION_PHOTOS:
         image = data.photo(name)
         assert image.ndim == 3 and image.shape[2] == 3 and 0.0 <= image.min() and image.max() <= 1.0
-    assert data.srgb_to_linear(np.float32(0.5)) == pytest.approx(0.21404, abs=1e-4)
+    assert srgb_decode(np.float32(0.5)) == pytest.approx(0.21404, abs=1e-4)
 
 
 def test_user_config_adds_and_overrides_reconstruction_profiles(tmp_path):
