@@ -654,8 +654,6 @@ def train_denoiser(scene_names: list[str] | tuple[str, ...], profile: str | Reco
     if published is not None:
         return published  # no dataset is generated and no crop drawn: the mixed model's take about 10 GB
     datasets = _datasets(scene_names, profile, progress)
-    if _denoiser_data_hash({name: d.key for name, d in datasets.items()}, profile, auxiliary) != data_hash:
-        raise RuntimeError("a generated dataset's key differs from reconstruction.data.dataset_key of its scene")
     data = _denoiser_crops(datasets, profile, auxiliary)
     precision = resolve_precision(profile.precision)[0]
     result = fit(model, loss_fn, data, directory, data_hash, profile.epochs, profile.batch_size,
@@ -727,8 +725,6 @@ def train_superres(profile: str | ReconstructionProfile = "quick", scene_names: 
     if published is not None:
         return published
     datasets = [generate_dataset(name, profile, progress) for name in scene_names]
-    if [d.key for d in datasets] != keys:
-        raise RuntimeError("a generated dataset's key differs from reconstruction.data.dataset_key of its scene")
     data = {split: superres_tensors(value) for split, value in superres_data(profile, datasets).items()}
     precision = resolve_precision(profile.precision)[0]
     result = fit(model, loss_fn, data, directory, data_hash, profile.epochs, profile.batch_size,

@@ -347,7 +347,7 @@ def headline(points: pd.DataFrame, spp: int, pipeline: str, reference: str = "mi
     Returns
     -------
     dict
-        ``value`` (the pipeline's error; also as ``psnr`` for the PSNRs) and ``seconds`` of the
+        ``value`` (the pipeline's error) and ``seconds`` of the
         pipeline point, the reference's :class:`Reach`, and ``speedup`` (a cell of :func:`speedup_cell`).
     """
     ours = points[(points["method"] == pipeline) & (points["spp"] == spp)]
@@ -357,8 +357,7 @@ def headline(points: pd.DataFrame, spp: int, pipeline: str, reference: str = "mi
     theirs = points[points["method"] == reference]
     reach = seconds_to_reach(theirs["seconds"], theirs[error], float(ours[error]), higher_is_better=ERRORS[error])
     cell = speedup_cell(reach, Reach(float(ours["seconds"]), "exact"), float(theirs["seconds"].max()))
-    return {"value": float(ours[error]), "psnr": float(ours[error]), "seconds": float(ours["seconds"]),
-            "reference": reach, "speedup": cell}
+    return {"value": float(ours[error]), "seconds": float(ours["seconds"]), "reference": reach, "speedup": cell}
 
 
 # ------------------------------------------------------------------ measuring
