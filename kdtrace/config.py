@@ -8,6 +8,7 @@ result file can record exactly the configuration that produced it.
 from __future__ import annotations
 
 import dataclasses
+import math
 import tomllib
 from dataclasses import dataclass
 from pathlib import Path
@@ -146,6 +147,11 @@ class ProfileConfig:
         Reconstruction scenes that also get the albedo-demodulated variant of the per-scene
         denoiser (the paper's network between a division and a multiplication by the albedo,
         :class:`reconstruction.models.Denoiser`; Table 2). Empty for none; one more training each.
+    perceptual_scenes : tuple of str
+        Reconstruction scenes that also get the perceptual variant of the per-scene denoiser
+        (the paper's network trained in a display-like transfer, ``Denoiser(perceptual=G)`` with
+        G the reconstruction profile's ``denoiser_perceptual_gain``; Table 2). Empty for none;
+        one more training each.
     sweep_spp : tuple of int
         Samples per pixel of the run-time-against-error sweep (our path tracer and Mitsuba).
     sweep_width, sweep_height : int
@@ -173,6 +179,7 @@ class ProfileConfig:
     sensitivity_scenes: tuple[str, ...] = ()
     variant_scenes: tuple[str, ...] = ()
     demodulated_scenes: tuple[str, ...] = ()
+    perceptual_scenes: tuple[str, ...] = ()
     sweep_spp: tuple[int, ...] = (1, 2, 4, 8, 16, 32)
     sweep_width: int = 128
     sweep_height: int = 128
@@ -182,7 +189,8 @@ class ProfileConfig:
     combined_reference_spp: int = 256
 
     def __post_init__(self) -> None:
-        for name in ("scenes", "reconstruction_scenes", "variant_scenes", "demodulated_scenes", "sweep_spp"):
+        for name in ("scenes", "reconstruction_scenes", "variant_scenes", "demodulated_scenes", "perceptual_scenes",
+                     "sweep_spp"):
             object.__setattr__(self, name, tuple(getattr(self, name)))
         if min(self.agreement_rays_per_kind, self.timing_rays, self.frame_width, self.frame_height, self.frame_spp,
                self.sweep_width, self.sweep_height, self.sweep_reference_spp, self.combined_reference_spp,
@@ -193,7 +201,7 @@ class ProfileConfig:
         if self.far_unseen_scene and self.far_unseen_scene in (*self.reconstruction_scenes, self.unseen_scene):
             raise ValueError(f"profile far_unseen_scene {self.far_unseen_scene!r} must not be a reconstruction "
                              "scene or the unseen_scene")
-        for name in ("variant_scenes", "demodulated_scenes"):
+        for name in ("variant_scenes", "demodulated_scenes", "perceptual_scenes"):
             stray = sorted(set(getattr(self, name)) - set(self.reconstruction_scenes))
             if stray:
                 raise ValueError(f"profile {name} {stray} are not among reconstruction_scenes")
@@ -333,6 +341,9 @@ class ReconstructionProfile:
         Linear learning-rate warm-up, in Adam steps, of the normal + depth denoiser variant only
         (:func:`reconstruction.train.fit`; 0: none). Without it that variant's first full-rate
         steps switched off its first encoder layer and it learned the identity (README).
+    denoiser_perceptual_gain : float
+        G of the perceptual denoiser variant's transfer ``log1p(G·v) / log1p(G)`` of exposed
+        radiance v (:class:`reconstruction.models.Denoiser`); > 0.
     denoiser_learning_rate : float or None
         Peak Adam step size of every denoiser (None: ``learning_rate``, which superresolution
         keeps).
@@ -382,6 +393,7 @@ class ReconstructionProfile:
     mixed_epochs: int = 0
     denoiser_edge_range_floor: float = 0.1
     normal_depth_warmup_steps: int = 0
+    denoiser_perceptual_gain: float = 64.0
     denoiser_learning_rate: float | None = None
     denoiser_decay: str = "constant"
     denoiser_warmup_steps: int = 0
@@ -450,6 +462,8 @@ class ReconstructionProfile:
             raise ValueError(f"reconstruction.denoiser_decay must be one of {DECAYS}, got {self.denoiser_decay!r}")
         if self.denoiser_learning_rate is not None and not self.denoiser_learning_rate > 0.0:
             raise ValueError("reconstruction.denoiser_learning_rate must be > 0 (or absent: learning_rate)")
+        if not (math.isfinite(self.denoiser_perceptual_gain) and self.denoiser_perceptual_gain > 0):
+            raise ValueError("reconstruction.denoiser_perceptual_gain must be a positive finite number")
         if not self.denoiser_edge_range_floor > 0:
             raise ValueError("reconstruction.denoiser_edge_range_floor must be > 0")
         if self.superres_crop_size % 2:

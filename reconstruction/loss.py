@@ -203,3 +203,32 @@ class EdgeAwareLoss(nn.Module):
         low, scale = edge_range(target_edges, self.range_floor)  # once for both maps
         edges = F.mse_loss((self.log(prediction) - low) / scale, (target_edges - low) / scale)
         return MSE_WEIGHT * pixel + (1.0 - MSE_WEIGHT) * edges
+
+
+class InSpace(nn.Module):
+    """A loss taken in another image space: ``loss(transfer(P), transfer(T))``.
+
+    Parameters
+    ----------
+    loss : nn.Module
+        The loss, e.g. :class:`EdgeAwareLoss`.
+    transfer : callable
+        Maps a batch (N, C, H, W) to the space the loss is taken in (differentiable).
+    space : str
+        What the space is, for the cache key of models trained with it.
+    """
+
+    def __init__(self, loss: nn.Module, transfer, space: str) -> None:
+        super().__init__()
+        self.loss = loss
+        self.transfer = transfer
+        self.space = space
+
+    @property
+    def config(self) -> dict:
+        """The wrapped loss's configuration and the space."""
+        return {**getattr(self.loss, "config", {"loss": type(self.loss).__name__}), "space": self.space}
+
+    def forward(self, prediction: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+        """Scalar loss of the transferred batches."""
+        return self.loss(self.transfer(prediction), self.transfer(target))

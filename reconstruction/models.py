@@ -45,6 +45,17 @@ then pass through the multiplication untouched and the net only smooths the illu
 below :data:`DEMODULATION_FLOOR` in every channel (emitters, sky, background, mirrors)
 ``s = 1``. All parameter-free.
 
+Perceptual transfer (``perceptual=G``, a documented variant; off by default, the count stays
+95,107): the network works on ``w = log1p(g·x) / log1p(G)`` of the linear radiance ``x`` instead
+of ``log1p(x)``, with ``g = G · e`` and ``e`` the training references' exposure (the display
+space's rule, :func:`reconstruction.metrics.auto_exposure`, over every training crop; set by
+:meth:`Denoiser.calibrate` and kept with the weights as the buffer ``radiance_gain``). Exposed
+radiance between 1/G and 1, what a display shows, spans most of ``[0, 1]`` as the sRGB curve's
+does, and values above display white stay logarithmic, as OIDN's HDR transfer is. The input and
+output stay in the paper net's ``log1p`` space (:func:`to_perceptual`, :func:`from_perceptual`), so
+every caller is unchanged; training takes its loss in ``w`` (:class:`reconstruction.loss.InSpace`).
+All parameter-free.
+
 The five poolings need sides divisible by 32: :meth:`Denoiser.forward` pads the bottom
 and right edges by edge replication up to the next multiple of 32 and crops the result
 back, so any input size works and the pooling grid is anchored at the top-left pixel
@@ -60,6 +71,8 @@ untrained net returns its input exactly and starts at bicubic quality).
 """
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 import torch
@@ -86,6 +99,10 @@ DEMODULATION_EPSILON = 0.01
 DEMODULATION_FLOOR = 0.02
 
 
+#: Where :func:`remodulate` switches from ``log1p(s·expm1(o))`` to ``o + log(s + (1 − s)·e^−o)``.
+REMODULATE_SWITCH = 20.0
+
+
 def remodulate(encoded: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
     """Multiply encoded radiance by ``scale`` in linear radiance: ``log1p(expm1(encoded) · scale)``.
 
@@ -93,13 +110,14 @@ def remodulate(encoded: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
     ----------
     encoded : torch.Tensor
         The demodulated network output in the log1p space; any real value.
-    scale : torch.Tensor
-        In (0, 1], broadcastable to ``encoded``.
+    scale : torch.Tensor or float
+        Positive, broadcastable to ``encoded`` (in (0, 1] for demodulation; the perceptual
+        transfer also multiplies by more than 1, when ``s + (1 − s)·e^−o`` stays ≥ 1).
 
     Returns
     -------
     torch.Tensor
-        Same shape, finite for every input. For o ≥ 0 it is computed as
+        Same shape, finite for every input. Above o = 20 it is computed as
         ``o + log(s + (1 − s)·e^−o)`` (expm1 overflows float32 above 88). A negative o is
         negative radiance, which :func:`reconstruction.hdr.decode` clamps to 0 anyway; there
         the map continues linearly with its slope at 0, ``s·o``, so the loss always has a
@@ -107,9 +125,39 @@ def remodulate(encoded: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
         straight-through clamp fed the edge loss gradients that did not lower it until the
         weights grew without bound (quick data).
     """
-    positive = encoded.clamp_min(0.0)
-    return torch.where(encoded >= 0, positive + torch.log(scale + (1.0 - scale) * torch.exp(-positive)),
-                       scale * encoded.clamp_max(0.0))
+    # up to o = 20 the direct formula (for a large scale the other one cancels: 1 + (s − 1)·o
+    # from s + (1 − s)·(1 − o)); beyond, e^−o < 3e-9 and the other one is exact in float32
+    near = encoded.clamp(0.0, REMODULATE_SWITCH)
+    far = encoded.clamp_min(REMODULATE_SWITCH)
+    positive = torch.where(encoded <= REMODULATE_SWITCH, torch.log1p(scale * torch.expm1(near)),
+                           far + torch.log(scale + (1.0 - scale) * torch.exp(-far)))
+    return torch.where(encoded >= 0, positive, scale * encoded.clamp_max(0.0))
+
+
+def to_perceptual(encoded: torch.Tensor, gain: torch.Tensor, perceptual: float) -> torch.Tensor:
+    """``log1p`` space → the perceptual space ``w = log1p(g·expm1(z)) / log1p(G)``.
+
+    Parameters
+    ----------
+    encoded : torch.Tensor
+        ``z = log1p(x)`` of linear radiance ``x``; negative values (negative radiance, only a
+        network output can have them) continue linearly with slope ``g / log1p(G)``.
+    gain : torch.Tensor
+        ``g`` (> 0), radiance units⁻¹: the radiance that shows at 1/G of display white is 1/g.
+    perceptual : float
+        ``G`` (> 0), the transfer's gain on exposed radiance.
+
+    Returns
+    -------
+    torch.Tensor
+        Same shape, finite for every finite input (see :func:`remodulate`).
+    """
+    return remodulate(encoded, gain) / math.log1p(perceptual)
+
+
+def from_perceptual(transferred: torch.Tensor, gain: torch.Tensor, perceptual: float) -> torch.Tensor:
+    """The inverse of :func:`to_perceptual`: perceptual space → ``log1p`` space."""
+    return remodulate(transferred * math.log1p(perceptual), 1.0 / gain)
 
 
 def count_parameters(model: nn.Module) -> int:
@@ -142,11 +190,22 @@ class Denoiser(nn.Module):
     demodulate : bool
         Denoise the colour divided by ``albedo + ε`` and multiply the result back (see the
         module docstring); the input and output spaces are unchanged.
+    perceptual : float
+        ``G`` of the perceptual transfer (see the module docstring), 0 for the paper's ``log1p``
+        space. Such a net is calibrated (:meth:`calibrate`) before training.
     """
 
     def __init__(self, auxiliary: tuple[str, ...] = ("albedo",), residual: bool = True,
-                 demodulate: bool = False) -> None:
+                 demodulate: bool = False, perceptual: float = 0.0) -> None:
         super().__init__()
+        perceptual = float(perceptual)
+        if not (perceptual == 0 or (math.isfinite(perceptual) and perceptual > 0)):
+            raise ValueError(f"perceptual must be 0 (off) or a positive finite gain, got {perceptual!r}")
+        if perceptual and demodulate:
+            raise ValueError("the perceptual transfer and albedo demodulation are separate variants; choose one")
+        self.perceptual = perceptual
+        if perceptual:  # a buffer, so the calibrated gain travels with the weights
+            self.register_buffer("radiance_gain", torch.tensor(perceptual, dtype=torch.float32))
         auxiliary = tuple(auxiliary)
         order = tuple(name for name in AUXILIARY_CHANNELS if name in auxiliary)
         if "albedo" not in auxiliary or set(auxiliary) - set(AUXILIARY_CHANNELS) or order != auxiliary:
@@ -174,7 +233,37 @@ class Denoiser(nn.Module):
             # what the cache key needs beyond the constructor: earlier clamps and scales were other models
             config.update(output="unclamped", scale="eps+(1-eps)*albedo", floor=DEMODULATION_FLOOR,
                           epsilon=DEMODULATION_EPSILON)
+        if self.perceptual:
+            config["kwargs"]["perceptual"] = self.perceptual
+            config.update(transfer="log1p(g*x)/log1p(G), g = G * exposure of the training references")
         return config
+
+    def calibrate(self, targets: torch.Tensor) -> float:
+        """Set the perceptual transfer's ``g = G · exposure`` from the training targets.
+
+        Parameters
+        ----------
+        targets : torch.Tensor
+            Shape (N, 3, H, W), the training targets in the ``log1p`` space.
+
+        Returns
+        -------
+        float
+            ``g`` in radiance units⁻¹.
+
+        Raises
+        ------
+        ValueError
+            When the net has no perceptual transfer, or the targets have no exposure (all black).
+        """
+        from reconstruction.metrics import auto_exposure
+
+        if not self.perceptual:
+            raise ValueError("only a perceptual denoiser (perceptual=G) is calibrated")
+        radiance = hdr.decode(targets.detach().float()).permute(0, 2, 3, 1).reshape(-1, targets.shape[-1], 3)
+        gain = self.perceptual * auto_exposure(radiance.numpy(), "the training targets")
+        self.radiance_gain.fill_(gain)
+        return gain
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """Denoise a batch.
@@ -199,6 +288,9 @@ class Denoiser(nn.Module):
             scale = torch.where(albedo.amax(dim=1, keepdim=True) < DEMODULATION_FLOOR, 1.0,
                                 DEMODULATION_EPSILON + (1.0 - DEMODULATION_EPSILON) * albedo)
             x = torch.cat([torch.log1p(hdr.decode(x[:, :3].float()) / scale), x[:, 3:].float()], dim=1)
+        if self.perceptual:
+            x = torch.cat([to_perceptual(x[:, :3].float(), self.radiance_gain, self.perceptual), x[:, 3:].float()],
+                          dim=1)
         noisy = x[:, :3]
         pad_h, pad_w = (-height) % POOLING_MULTIPLE, (-width) % POOLING_MULTIPLE
         if pad_h or pad_w:
@@ -215,6 +307,8 @@ class Denoiser(nn.Module):
         output = noisy + correction if self.residual else correction
         if self.demodulate:
             output = remodulate(output.float(), scale)
+        if self.perceptual:
+            output = from_perceptual(output.float(), self.radiance_gain, self.perceptual)
         return output
 
 

@@ -592,7 +592,7 @@ def train_denoiser(scene_names: list[str] | tuple[str, ...], profile: str | Reco
                    model: nn.Module | None = None, loss_fn: nn.Module | None = None,
                    auxiliary: tuple[str, ...] = ("albedo",), directory: Path | None = None,
                    psnr: Callable | None = None, progress: bool | None = None,
-                   demodulate: bool = False, warmup_steps: int = 0) -> TrainResult:
+                   demodulate: bool = False, warmup_steps: int = 0, perceptual: float = 0.0) -> TrainResult:
     """Train the denoiser on the Precision Graphics datasets of ``scene_names``.
 
     One scene gives the scene's specialised (Precision Graphics) model, several the
@@ -620,6 +620,10 @@ def train_denoiser(scene_names: list[str] | tuple[str, ...], profile: str | Reco
     demodulate : bool
         The default model denoises the albedo-demodulated colour (the documented variant of
         :class:`reconstruction.models.Denoiser`); ignored when ``model`` is given.
+    perceptual : float
+        The default model works in the perceptual transfer with this gain G (0: the paper's
+        ``log1p`` space; :class:`reconstruction.models.Denoiser`), is calibrated on the training
+        targets, and the loss is taken in that space; ignored when ``model`` is given.
     warmup_steps : int
         Learning-rate warm-up of :func:`fit` for this model (a variant's own); the longer of it
         and the profile's ``denoiser_warmup_steps`` is used (part of the cache key when not 0).
@@ -640,11 +644,15 @@ def train_denoiser(scene_names: list[str] | tuple[str, ...], profile: str | Reco
         from reconstruction.models import Denoiser
 
         torch.manual_seed(profile.seed)
-        model = Denoiser(auxiliary, demodulate=demodulate)
+        model = Denoiser(auxiliary, demodulate=demodulate, perceptual=perceptual)
     if loss_fn is None:
-        from reconstruction.loss import DENOISER_SIGMA, EdgeAwareLoss
+        from reconstruction.loss import DENOISER_SIGMA, EdgeAwareLoss, InSpace
+        from reconstruction.models import to_perceptual
 
         loss_fn = EdgeAwareLoss(DENOISER_SIGMA, profile.denoiser_edge_range_floor)
+        if getattr(model, "perceptual", 0):  # the loss where the net works, not in log1p
+            loss_fn = InSpace(loss_fn, lambda z: to_perceptual(z, model.radiance_gain, model.perceptual),
+                              "perceptual transfer of the net")
     warmup_steps = max(warmup_steps, profile.denoiser_warmup_steps)
     schedule = {"warmup_steps": warmup_steps, "learning_rate": profile.denoiser_rate, "decay": profile.denoiser_decay}
     if directory is None:
@@ -655,6 +663,8 @@ def train_denoiser(scene_names: list[str] | tuple[str, ...], profile: str | Reco
         return published  # no dataset is generated and no crop drawn: the mixed model's take about 10 GB
     datasets = _datasets(scene_names, profile, progress)
     data = _denoiser_crops(datasets, profile, auxiliary)
+    if getattr(model, "perceptual", 0):
+        model.calibrate(data["train"][1])
     precision = resolve_precision(profile.precision)[0]
     result = fit(model, loss_fn, data, directory, data_hash, profile.epochs, profile.batch_size,
                  profile.denoiser_rate, profile.seed, decode, psnr, progress, precision, profile.patience,

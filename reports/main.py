@@ -137,7 +137,8 @@ def restrict_scenes(config: Config, profile_name: str, scenes: list[str] | None)
     limited = dataclasses.replace(profile, scenes=tuple(scenes),
                                   reconstruction_scenes=tuple(s for s in profile.reconstruction_scenes if s in scenes),
                                   variant_scenes=tuple(s for s in profile.variant_scenes if s in scenes),
-                                  demodulated_scenes=tuple(s for s in profile.demodulated_scenes if s in scenes))
+                                  demodulated_scenes=tuple(s for s in profile.demodulated_scenes if s in scenes),
+                                  perceptual_scenes=tuple(s for s in profile.perceptual_scenes if s in scenes))
     return dataclasses.replace(config, profiles={**config.profiles, profile_name: limited})
 
 

@@ -78,6 +78,9 @@ class DenoiserVariant:
         Its auxiliary input buffers.
     demodulate : bool
         Albedo demodulation (:class:`reconstruction.models.Denoiser`).
+    perceptual : bool
+        Trained in the perceptual transfer with the reconstruction profile's
+        ``denoiser_perceptual_gain`` (:class:`reconstruction.models.Denoiser`).
     warmup_field : str
         The reconstruction profile's field giving its learning-rate warm-up steps ("": none).
     """
@@ -88,16 +91,20 @@ class DenoiserVariant:
     scenes_field: str
     auxiliary: tuple[str, ...]
     demodulate: bool = False
+    perceptual: bool = False
     warmup_field: str = ""
 
 
 #: The documented variants: the paper's network fed albedo, normal and depth (10 input channels
-#: instead of 6, its parameter count reported), and the paper's network on albedo-demodulated
-#: colour (the same 95,107 parameters).
+#: instead of 6, its parameter count reported), the paper's network on albedo-demodulated
+#: colour, and the paper's network trained in a display-like transfer (both with the same 95,107
+#: parameters).
 DENOISER_VARIANTS = (
     DenoiserVariant("normal_depth", "normal+depth", "per-scene +normal+depth", "variant_scenes",
                     ("albedo", "normal", "depth"), warmup_field="normal_depth_warmup_steps"),
     DenoiserVariant("demodulated", "demodulated", "per-scene demodulated", "demodulated_scenes", ("albedo",), True),
+    DenoiserVariant("perceptual", "perceptual", "per-scene perceptual", "perceptual_scenes", ("albedo",),
+                    perceptual=True),
 )
 
 #: Output stems, each written as ``.md`` and ``.csv``.
@@ -282,7 +289,8 @@ def _measure(config: Config, profile_name: str, fresh: bool, progress: bool,
     mixed = stage("mixed denoiser", lambda: train_denoiser(scenes, recon.mixed, progress=False))
     variant_models: dict[DenoiserVariant, dict[str, Any]] = {
         variant: {name: stage(f"{variant.label} denoiser {name}", lambda name=name, variant=variant: train_denoiser(
-            [name], recon, auxiliary=variant.auxiliary, demodulate=variant.demodulate, progress=False,
+            [name], recon, auxiliary=variant.auxiliary, demodulate=variant.demodulate,
+            perceptual=recon.denoiser_perceptual_gain if variant.perceptual else 0.0, progress=False,
             warmup_steps=getattr(recon, variant.warmup_field) if variant.warmup_field else 0)) for name in names}
         for variant, names in variants.items()}
     superres = stage("superresolution", lambda: train_superres(recon, scenes, progress=False))
@@ -745,7 +753,12 @@ _TITLES = {
                "`demodulated_scenes`): the paper's network "
                "({demodulated_parameters} parameters) denoising the noisy colour divided by the albedo and "
                "multiplying its output back (`reconstruction.models.Denoiser(demodulate=True)`), trained and measured "
-               "the same way. The references' own noise, as PSNRs estimated from the noisy input's error and the spp "
+               "the same way. `per-scene perceptual` (profile `perceptual_scenes`): the paper's network working on "
+               "`log1p(g·x)/log1p(G)` of the radiance x instead of `log1p(x)`, g = G times the exposure of its "
+               "training references, and trained with the paper's loss in that space "
+               "(`reconstruction.models.Denoiser(perceptual=G)`, G the reconstruction profile's "
+               "`denoiser_perceptual_gain`): errors weighted roughly as the display weights them. "
+               "The references' own noise, as PSNRs estimated from the noisy input's error and the spp "
                "ratio: `reference_psnr_lowest` on the worst test view and `reference_psnr_pooled` over all of them; "
                "each `reference_margin` is that minus the best pooled PSNR of the row (ours, OIDN or noisy). The pooled "
                "margin says how far reference noise can move the row's pooled PSNRs (6 dB: at most 1 dB). "
@@ -850,17 +863,18 @@ def write_figures(m: dict, objects: dict[str, Any], config: Config, out_dir: Pat
 
     Figure 4: every model's training curves. Per reconstruction scene, one test view
     (:func:`reports.figures.scene_figures`: the first in name order): noisy / per-scene /
-    mixed / (demodulated variant, where trained) / OIDN / reference, and bicubic / ours / reference superresolution; per
+    mixed / (demodulated and perceptual variants, where trained) / OIDN / reference, and bicubic / ours / reference superresolution; per
     never-seen scene, noisy / mixed / OIDN / reference on its first view.
     """
     from reports.figures import markdown_links, scene_figures, training_curves
 
     recon = config.reconstruction.profile(m["reconstruction_profile"])
     paths = {"training": training_curves(m["histories"], out_dir / "figures" / "training.png")}
-    demodulated = objects.get("variants", {}).get("demodulated", {})
+    variants = objects.get("variants", {})
     for name in m["scenes"]:
         panels = {"ours": objects["models"][name], "mixed": objects["mixed"],
-                  **({"ours demodulated": demodulated[name]} if name in demodulated else {})}
+                  **{f"ours {key}": variants[key][name] for key in ("demodulated", "perceptual")
+                     if name in variants.get(key, {})}}
         paths.update(scene_figures(name, objects["datasets"][name], panels, objects["superres"], out_dir,
                                    downsample=recon.superres_downsample))
     for role in ("unseen", "far"):

@@ -24,6 +24,7 @@ from reconstruction.loss import (
     EDGE_RANGE_FLOOR,
     MSE_WEIGHT,
     EdgeAwareLoss,
+    InSpace,
     LaplacianOfGaussian,
     log_kernel,
     normalise_edges,
@@ -36,10 +37,12 @@ from reconstruction.models import (
     Superresolution,
     bicubic_upsample,
     count_parameters,
+    from_perceptual,
     remodulate,
     replicate_padded_conv,
     rgb_from_ycbcr,
     superresolve,
+    to_perceptual,
     ycbcr_from_rgb,
 )
 
@@ -107,6 +110,61 @@ def test_demodulated_denoiser_is_the_same_net_between_a_division_and_a_multiplic
     assert dead.out.bias.grad is not None and bool((dead.out.bias.grad < 0).all())
     assert demodulated.config != Denoiser().config  # a checkpoint of one is refused by the other
     assert "demodulate" not in Denoiser().config["kwargs"]  # the paper net's cache keys are unchanged
+
+
+def test_perceptual_denoiser_is_the_same_net_on_log1p_of_exposed_radiance():
+    torch.manual_seed(4)
+    x = torch.rand(2, 6, 40, 24)
+    x[:, :3] = hdr.encode(torch.rand(2, 3, 40, 24) ** 4 * 0.02)  # dark radiance, as Crytek Sponza's
+    perceptual = Denoiser(perceptual=64.0)
+    gain = perceptual.calibrate(x[:, :3])
+    radiance = hdr.decode(x[:, :3]).permute(0, 2, 3, 1).reshape(-1, 3).double()
+    white = torch.quantile(radiance @ torch.tensor([0.2126, 0.7152, 0.0722], dtype=torch.float64), 0.99)
+    assert gain == pytest.approx(64.0 / float(white), rel=1e-4)  # G times the display exposure
+    with torch.inference_mode():
+        assert torch.allclose(perceptual(x), x[:, :3], atol=1e-5)  # untrained: the identity
+        _randomise(perceptual.out)
+        plain = Denoiser()
+        plain.load_state_dict({k: v for k, v in perceptual.state_dict().items() if k != "radiance_gain"})
+        # the obvious reference in float64: w = log1p(g·x)/log1p(G), the plain net on w, then back
+        transfer = np.log1p(64.0)
+        inner = torch.cat([torch.log1p(gain * hdr.decode(x[:, :3].double())).float() / transfer, x[:, 3:]], dim=1)
+        expected = torch.expm1(plain(inner).double().clamp_min(0) * transfer) / gain
+        # float32 inside the net against float64 around it
+        assert torch.allclose(hdr.decode(perceptual(x).double()), expected, rtol=3e-3, atol=1e-7)
+        assert not torch.allclose(hdr.decode(plain(x).double()), expected, rtol=0.1)
+    restored = Denoiser(**perceptual.config["kwargs"])
+    restored.load_state_dict(perceptual.state_dict())  # the calibrated gain travels with the weights
+    assert float(restored.radiance_gain) == pytest.approx(gain, rel=1e-6)
+    assert count_parameters(perceptual) == 95_107
+    assert perceptual.config != Denoiser().config and "perceptual" not in Denoiser().config["kwargs"]
+    with pytest.raises(ValueError, match="separate variants"):
+        Denoiser(demodulate=True, perceptual=64.0)
+    with pytest.raises(ValueError, match="positive finite"):
+        Denoiser(perceptual=-1.0)
+    with pytest.raises(ValueError, match="only a perceptual"):
+        Denoiser().calibrate(x[:, :3])
+    with pytest.raises(ValueError, match="no exposure"):
+        Denoiser(perceptual=64.0).calibrate(torch.zeros(1, 3, 8, 8))
+    # the loss is taken in the transfer: a dark error the log1p space barely sees weighs as much as a bright one
+    loss = InSpace(torch.nn.functional.mse_loss, lambda z: to_perceptual(z, perceptual.radiance_gain, 64.0), "w")
+    dark, bright = torch.full((1, 3, 4, 4), 1e-3), torch.full((1, 3, 4, 4), 1e-1)
+    in_log1p = [float(torch.nn.functional.mse_loss(hdr.encode(v * 1.5), hdr.encode(v))) for v in (dark, bright)]
+    in_transfer = [float(loss(hdr.encode(v * 1.5), hdr.encode(v))) for v in (dark, bright)]
+    assert in_log1p[1] / in_log1p[0] > 1000 and in_transfer[1] / in_transfer[0] < 10
+    assert loss.config == {"loss": "function", "space": "w"}
+
+
+def test_perceptual_transfer_round_trips_and_is_finite_with_a_gradient_everywhere():
+    encoded = torch.tensor([-1e4, -3.0, 0.0, 1e-4, 0.5, 3.0, 20.0, 1e4], requires_grad=True)
+    for gain in (1e-3, 1.0, 1e4):
+        gain = torch.tensor(gain)
+        forward = to_perceptual(encoded, gain, 64.0)
+        back = from_perceptual(forward, gain, 64.0)
+        assert bool(torch.isfinite(forward).all()) and torch.allclose(back, encoded, rtol=1e-5, atol=1e-5)
+        encoded.grad = None
+        back.sum().backward()
+        assert bool(torch.isfinite(encoded.grad).all()) and bool((encoded.grad > 0).all())
 
 
 def test_remodulate_is_the_multiplication_in_linear_radiance_and_finite_with_a_gradient_everywhere():

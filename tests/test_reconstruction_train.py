@@ -352,6 +352,25 @@ def test_a_denoiser_trains_for_the_profiles_denoiser_epochs(tmp_path):
     assert json.loads((tmp_path / "run" / "result.json").read_text())["provenance"]["config"]["epochs"] == 2
 
 
+def test_the_perceptual_denoiser_is_calibrated_on_its_training_targets_and_trained_in_its_transfer(cache):
+    from reconstruction.loss import EdgeAwareLoss, InSpace
+    from reconstruction.metrics import auto_exposure
+    from reconstruction.models import Denoiser
+
+    profile = dataclasses.replace(PROFILE, epochs=1, denoiser_epochs=1)
+    result = train.train_denoiser([SCENE], profile, perceptual=64.0, psnr=_psnr, progress=False)
+    targets = train.denoiser_data([SCENE], profile)[0]["train"][1]
+    linear = torch.expm1(targets).permute(0, 2, 3, 1).reshape(-1, targets.shape[-1], 3).numpy()
+    assert float(result.model.radiance_gain) == pytest.approx(64.0 * auto_exposure(linear), rel=1e-5)
+    assert math.isfinite(result.history[0]["validation_loss"])
+    # another model than the paper net's, and its loss is taken in the transfer
+    paper = train._training_dir("denoiser", Denoiser(), EdgeAwareLoss(), "hash", profile, 1e-3)
+    perceptual = Denoiser(perceptual=64.0)
+    in_space = InSpace(EdgeAwareLoss(), lambda z: z, "perceptual transfer of the net")
+    assert train._training_dir("denoiser", perceptual, in_space, "hash", profile, 1e-3) != paper
+    assert result.directory.name.startswith("denoiser-")
+
+
 def test_profiles_warm_up_only_the_standard_normal_depth_variant():
     profiles = DEFAULT_CONFIG.reconstruction
     assert profiles.profile("standard").normal_depth_warmup_steps == 100
