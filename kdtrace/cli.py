@@ -4,7 +4,8 @@ Subcommands: ``scenes`` (list scene descriptions), ``build`` (build and cache th
 KD-trees of a scene, print their statistics), ``check-embree`` (hit-for-hit agreement
 with Embree), ``render`` (path trace to EXR and PNG), ``compare`` (every metric of two
 images, linear and display-referred, and a FLIP map), ``report`` (the main job: every
-report part of a profile), ``gate`` and ``update-baseline`` (the CI regression gate).
+report part of a profile), ``verdict`` (its one-page verdict, again from a results folder),
+``gate`` and ``update-baseline`` (the CI regression gate).
 """
 
 from __future__ import annotations
@@ -227,6 +228,17 @@ def _report(args, config) -> int:
     return 0 if outcome.ok else 1
 
 
+def _verdict(args, config) -> int:
+    from reports.verdict import link_from_index, write_verdict
+
+    out_dir = Path(args.results) if args.results else results_dir(args.profile)
+    written = write_verdict(out_dir, args.profile if not args.results else None)
+    linked = link_from_index(out_dir)
+    print(f"wrote {written['markdown']} and {written['html']} ({written['html'].stat().st_size / 1e6:.2f} MB)"
+          + ("; linked first from README.md" if linked else "; no README.md index to link it from"))
+    return 0
+
+
 def _gate(args, config) -> int:
     from reports.gate import run_gate
 
@@ -345,6 +357,13 @@ def build_parser() -> argparse.ArgumentParser:
                         help="also put this plug-in denoiser through Tables 2 and 6 and the error-time sweep: a "
                              "registered name (kdtrace.denoisers) or package.module:factory; repeatable or comma-separated")
     report.set_defaults(run=_report)
+
+    verdict = sub.add_parser("verdict", help="write the one-page verdict (verdict.md, verdict.html) of a results folder "
+                             "again, from what its report wrote; measures nothing")
+    verdict.add_argument("results", nargs="?", metavar="RESULTS_DIR",
+                         help="results folder of a report run (default results/PROFILE)")
+    verdict.add_argument("--profile", default="quick", help="profile whose results folder to use without RESULTS_DIR")
+    verdict.set_defaults(run=_verdict)
 
     for command, run, what in (("gate", _gate, "compare the latest run's metrics with the committed baseline"),
                                ("update-baseline", _update_baseline, "rewrite the committed baseline from the latest run")):

@@ -10,6 +10,8 @@
   whole-frame difference of the denoiser (:func:`pipeline_stages` computes both).
 * :func:`scene_figures` makes the Figures 5 and 7 panels of one scene from its dataset,
   :func:`markdown_links` the report's image links.
+* :func:`write_linear_strip` saves the linear images of one scene's comparison strip as
+  EXR for the verdict page (:mod:`reports.verdict`), on the view :func:`strip_view` picks.
 
 Display convention (every image panel of a comparison): the tables' display-referred
 tonemapping (:mod:`reconstruction.metrics`): linear radiance times the exposure that maps the
@@ -30,7 +32,8 @@ mostly where the radiance is brightest); edges and shadow boundaries are where d
 blur.
 
 **View rule** (:func:`scene_figures`): the first test view in sorted name order, unless a
-view is named; never chosen by its results.
+view is named; never chosen by its results. The verdict page's strips use
+:func:`strip_view` instead, which skips mostly black views; it too looks at the references only.
 
 Figures are drawn at :data:`DPI` dots per inch on matplotlib's Agg canvas (no pyplot
 state), about :data:`PANEL_INCHES` inches per panel, and written atomically as PNG. A file
@@ -42,8 +45,10 @@ still too big, a warning says so.
 from __future__ import annotations
 
 import io
+import json
 import math
 import os
+import re
 import warnings
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -73,6 +78,13 @@ LUMA = np.array([0.2126, 0.7152, 0.0722])
 HISTORY_KEYS = ("epoch", "train_loss", "validation_loss", "train_psnr", "validation_psnr")
 #: Colour of the crop rectangle.
 CROP_COLOUR = "#ffd400"
+#: A reference pixel counts as lit for :func:`strip_view` when its exposed luminance (luminance
+#: times the view's exposure, display white = 1) is at least this.
+LIT_FRACTION = 0.05
+#: Folder of the verdict page's linear strip images inside a results folder.
+STRIP_FOLDER = "verdict"
+#: Name of the file that describes one scene's saved strip (:func:`write_linear_strip`).
+STRIP_MANIFEST = "strip.json"
 
 #: A crop rectangle in pixels: (top, left, height, width).
 Crop = tuple[int, int, int, int]
@@ -732,23 +744,11 @@ def scene_figures(scene_name: str, dataset, models: Mapping[str, Any], superres_
     ValueError
         No denoiser given, an unknown view, or a dataset without test views.
     """
-    from reconstruction.baselines import noisy_input
-    from reconstruction.baselines import oidn as oidn_denoise
-    from reconstruction.evaluate import denoise_view
-
     if not models:
         raise ValueError("scene_figures: no denoiser given")
     name = figure_view(dataset, view)
     buffers = dataset.load_view(name)
-    settings = dataset.manifest.get("settings", {})
-    spp, reference_spp = settings.get("spp"), settings.get("reference_spp")
-    noisy_label = f"noisy, {spp} spp" if spp is not None else "noisy"
-    images = {noisy_label: noisy_input(buffers["noisy"])}
-    for label, model in models.items():
-        images[label] = denoise_view(model, buffers, tuple(getattr(model, "auxiliary", ("albedo",))))
-    if oidn:
-        images["OIDN"] = oidn_denoise(buffers["noisy"], buffers["albedo"], buffers["normal"])
-    reference_label = f"reference, {reference_spp} spp" if reference_spp is not None else "reference"
+    images, reference_label = view_images(dataset, buffers, models, oidn)
     figures = Path(out_dir) / "figures"
     split = "test" if name in dataset.views("test") else "non-test"
     denoising = denoising_panel(images, buffers["reference"], figures / f"{scene_name}-denoising.png",
@@ -757,6 +757,134 @@ def scene_figures(scene_name: str, dataset, models: Mapping[str, Any], superres_
     superres = superres_panel(sr["low"], sr["bicubic"], sr["ours"], sr["target"], figures / f"{scene_name}-superres.png",
                               title=f"{scene_name}, {name} ({split} view): superresolution 2x, {downsample} reduction")
     return {f"{scene_name}-denoising": denoising.path, f"{scene_name}-superres": superres.path}
+
+
+def view_images(dataset, buffers: Mapping[str, np.ndarray], models: Mapping[str, Any],
+                oidn: bool = True) -> tuple[dict[str, np.ndarray], str]:
+    """The compared images of one loaded view: the noisy input, each denoiser and OIDN, linear (H, W, 3).
+
+    Parameters
+    ----------
+    dataset : reconstruction.data.Dataset
+        Its manifest's ``spp`` and ``reference_spp`` name the noisy and reference images.
+    buffers : mapping
+        :meth:`reconstruction.data.Dataset.load_view` of the view.
+    models : mapping
+        Label -> denoiser, in order (:func:`reconstruction.evaluate.denoise_view`, each with its
+        own auxiliary buffers).
+    oidn : bool
+        Also :func:`reconstruction.baselines.oidn` with albedo and normal, labelled ``"OIDN"``.
+
+    Returns
+    -------
+    images : dict
+        ``"noisy, N spp"`` first, then ``models``' labels, then ``"OIDN"``.
+    reference_label : str
+        ``"reference, N spp"``.
+    """
+    from reconstruction.baselines import noisy_input
+    from reconstruction.baselines import oidn as oidn_denoise
+    from reconstruction.evaluate import denoise_view
+
+    settings = dataset.manifest.get("settings", {})
+    spp, reference_spp = settings.get("spp"), settings.get("reference_spp")
+    images = {f"noisy, {spp} spp" if spp is not None else "noisy": noisy_input(buffers["noisy"])}
+    for label, model in models.items():
+        images[label] = denoise_view(model, buffers, tuple(getattr(model, "auxiliary", ("albedo",))))
+    if oidn:
+        images["OIDN"] = oidn_denoise(buffers["noisy"], buffers["albedo"], buffers["normal"])
+    return images, f"reference, {reference_spp} spp" if reference_spp is not None else "reference"
+
+
+def lit_fraction(reference: Any) -> float:
+    """The fraction of a reference's pixels that are lit on display, in [0, 1].
+
+    A pixel is lit when its Rec. 709 luminance times the view's display exposure
+    (:func:`reconstruction.metrics.auto_exposure`: the reference's 99th-percentile luminance
+    maps to 1) is at least :data:`LIT_FRACTION`. A reference without an exposure (all black
+    or not finite) has no lit pixel: 0.
+    """
+    from reconstruction.metrics import auto_exposure, luminance
+
+    reference = as_rgb(reference, "reference")
+    try:
+        exposure = auto_exposure(reference)
+    except ValueError:
+        return 0.0
+    return float(np.mean(luminance(reference) * exposure >= LIT_FRACTION))
+
+
+def strip_view(dataset, split: str | None = "test") -> str:
+    """The view of the verdict page's strip: the view of ``split`` whose reference has the most lit pixels.
+
+    **Rule.** Among the accepted views of ``split`` (all accepted views when None), the one with
+    the largest :func:`lit_fraction` of its reference (pixels at least :data:`LIT_FRACTION` of
+    display white at the metrics' exposure); ties, and a split of only black views, go to the
+    first view in sorted name order. It looks at the references alone, never at any method's
+    output, and avoids views that are mostly black or empty (a camera facing an unlit wall).
+
+    Raises
+    ------
+    ValueError
+        When the split has no view.
+    """
+    names = sorted(dataset.views(split))
+    if not names:
+        raise ValueError(f"the dataset {dataset.root} has no {split or 'accepted'} view")
+    scores = [lit_fraction(dataset.load_view(name)["reference"]) for name in names]
+    return names[int(np.argmax(scores))]
+
+
+def write_linear_strip(scene_name: str, dataset, models: Mapping[str, Any], out_dir: str | Path,
+                       split: str | None = "test", oidn: bool = True) -> Path:
+    """Save the linear images of one scene's verdict strip as EXR, with a manifest, for :mod:`reports.verdict`.
+
+    On the :func:`strip_view` of ``split``: the noisy input, each of ``models`` and OIDN
+    (:func:`view_images`) and the reference, each as a float32 EXR (linear radiance, as the
+    metrics see it) in ``out_dir/verdict/SCENE/`` (``SCENE`` made file-safe by
+    :func:`safe_stem`), and ``strip.json``: the scene, the view, its split, the rule, and per
+    image its key, label and file, in strip order (the reference last).
+
+    Parameters
+    ----------
+    scene_name : str
+    dataset : reconstruction.data.Dataset
+    models : mapping
+        Key -> denoiser in strip order, e.g. ``{"ours": per_scene, "mixed": mixed}``.
+    out_dir : str or Path
+        The results folder.
+    split : str or None
+        ``"test"``, or None for every accepted view (a scene no model saw).
+    oidn : bool
+
+    Returns
+    -------
+    Path
+        The manifest ``strip.json``.
+    """
+    from kdtrace.imageio import write_exr
+
+    name = strip_view(dataset, split)
+    buffers = dataset.load_view(name)
+    images, reference_label = view_images(dataset, buffers, models, oidn)
+    keys = ["noisy", *models, *(["oidn"] if oidn else [])]
+    labels = {"ours": "ours (per-scene)"}
+    folder = Path(out_dir) / STRIP_FOLDER / safe_stem(scene_name)
+    entries = []
+    for key, (label, image) in zip([*keys, "reference"], [*images.items(), (reference_label, buffers["reference"])],
+                                   strict=True):
+        write_exr(folder / f"{key}.exr", as_rgb(image, label).astype(np.float32))
+        entries.append({"key": key, "label": labels.get(key, label), "file": f"{key}.exr"})
+    manifest = {"scene": scene_name, "view": name, "split": split or "all views",
+                "rule": f"the {split or 'accepted'} view whose reference has the most pixels at least "
+                        f"{LIT_FRACTION:g} of display white at the metrics' exposure",
+                "images": entries}
+    return atomic_write_bytes(folder / STRIP_MANIFEST, json.dumps(manifest, indent=1).encode())
+
+
+def safe_stem(name: str) -> str:
+    """``name`` as a file name: every run of characters other than letters, digits, ``.``, ``_`` and ``-`` becomes ``_``."""
+    return re.sub(r"[^A-Za-z0-9._-]+", "_", name).strip(".") or "_"
 
 
 def markdown_links(paths: Mapping[str, str | os.PathLike], relative_to: str | Path) -> str:

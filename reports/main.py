@@ -20,7 +20,9 @@ starts, and all of them are looked up before any work, so a missing one is a cle
 error at once. ``--scenes`` restricts the profile's ``scenes`` (and its
 ``reconstruction_scenes`` to those among them) for every part.
 
-Afterwards ``out_dir/README.md`` links every file each part wrote, with the notes the
+Afterwards the verdict page (:mod:`reports.verdict`: ``verdict.md`` and ``verdict.html``, the
+paper's claims judged on whatever the folder holds) is written, and ``out_dir/README.md``
+links it first, then every file each part wrote, with the notes the
 parts raised (:class:`reports.notes.ReportNote`: reused caches, a missing backend such as
 Mitsuba falling back to ``scalar_rgb``), and ``provenance.json`` records the profile,
 the resolved configuration, the seeds, package versions, CPU model and cores, the date
@@ -56,7 +58,9 @@ PARTS = {
     "scaleout": "reports.scaleout",
 }
 #: Files of the output folder that are bookkeeping rather than results (not linked from the index).
-BOOKKEEPING = ("README.md", "provenance.json", "gate.md")
+BOOKKEEPING = ("README.md", "provenance.json", "gate.md", "verdict.md", "verdict.html")
+#: Folders whose files the index does not list one by one (rows of resumable parts, the verdict page's images).
+UNLISTED_FOLDERS = ("rows/", "verdict/")
 #: Suffixes of result files the index links (PNG plots are also shown inline).
 RESULT_SUFFIXES = (".md", ".csv", ".png", ".json", ".exr")
 
@@ -149,7 +153,7 @@ def _snapshot(out_dir: Path) -> dict[str, int]:
 
 def _written(before: dict[str, int], after: dict[str, int]) -> list[str]:
     return sorted(name for name, mtime in after.items()
-                  if before.get(name) != mtime and name not in BOOKKEEPING and not name.startswith("rows/"))
+                  if before.get(name) != mtime and name not in BOOKKEEPING and not name.startswith(UNLISTED_FOLDERS))
 
 
 def _plugin_arguments(generate, plugins: dict[str, list[str]]) -> dict[str, list[str]]:
@@ -186,8 +190,10 @@ def _link(name: str) -> str:
 
 
 def _index(parts: list[PartRun], profile_name: str, provenance: dict, gate_line: str, others: list[str]) -> str:
+    from reports.verdict import INDEX_LINE
+
     host, versions = provenance["machine"], provenance["versions"]
-    lines = [f"# kdtrace report: {profile_name} profile\n",
+    lines = [f"# kdtrace report: {profile_name} profile\n", INDEX_LINE,
              f"{host['date']} on {host['cpu']} ({host['cores']} cores, {host['numba_threads']} numba threads), "
              f"Python {host['python']}. Versions: " + ", ".join(f"{k} {v}" for k, v in versions.items()) + ". "
              "Seeds: " + ", ".join(f"{k} {v}" for k, v in provenance["seeds"].items()) + ". "
@@ -243,6 +249,7 @@ def run_report(config: Config, profile_name: str, out_dir: str | Path, scenes: l
     """
     from reports import gate as gate_module
     from reports.gate import absolute_failures
+    from reports.verdict import write_verdict
 
     profile = config.profile(profile_name)
     config = restrict_scenes(config, profile_name, scenes)
@@ -277,6 +284,7 @@ def run_report(config: Config, profile_name: str, out_dir: str | Path, scenes: l
     provenance = stamp(config.to_dict(), profile=profile_name, seeds=seeds, fresh=fresh, plugins=plugins,
                        parts={r.name: {"seconds": round(r.seconds, 1), "notes": r.notes, "files": r.files} for r in runs})
     atomic_write_bytes(out_dir / "provenance.json", json.dumps(provenance, indent=1, default=str).encode())
+    write_verdict(out_dir, profile_name)
     gate_line = outcome.gate_text.strip().splitlines()[-1] if gate else ""
     written = {name for run in runs for name in run.files}
     others = _written({}, {name: 0 for name in _snapshot(out_dir) if name not in written})

@@ -864,9 +864,11 @@ def write_figures(m: dict, objects: dict[str, Any], config: Config, out_dir: Pat
     Figure 4: every model's training curves. Per reconstruction scene, one test view
     (:func:`reports.figures.scene_figures`: the first in name order): noisy / per-scene /
     mixed / (demodulated and perceptual variants, where trained) / OIDN / reference, and bicubic / ours / reference superresolution; per
-    never-seen scene, noisy / mixed / OIDN / reference on its first view.
+    never-seen scene, noisy / mixed / OIDN / reference on its first view. For the verdict page, the
+    linear images of each scene's strip (noisy / per-scene / mixed / OIDN / reference; never-seen
+    scenes without the per-scene model) as EXR (:func:`reports.figures.write_linear_strip`).
     """
-    from reports.figures import markdown_links, scene_figures, training_curves
+    from reports.figures import markdown_links, scene_figures, training_curves, write_linear_strip
 
     recon = config.reconstruction.profile(m["reconstruction_profile"])
     paths = {"training": training_curves(m["histories"], out_dir / "figures" / "training.png")}
@@ -884,6 +886,10 @@ def write_figures(m: dict, objects: dict[str, Any], config: Config, out_dir: Pat
             found = scene_figures(name, dataset, {"mixed": objects["mixed"]}, objects["superres"], out_dir,
                                   view=dataset.views()[0], downsample=recon.superres_downsample)
             paths.update({key: path for key, path in found.items() if "denoising" in key})
+            write_linear_strip(name, dataset, {"mixed": objects["mixed"]}, out_dir, split=None)
+    for name in m["scenes"]:
+        write_linear_strip(name, objects["datasets"][name], {"ours": objects["models"][name], "mixed": objects["mixed"]},
+                           out_dir)
     text = (f"# Figures ({m['profile']} profile)\n\nThe paper's Figure 4 (training curves: solid train, dashed "
             "validation, a dot at each kept epoch) and, per scene, Figures 5-7 on one test view (the first in name "
             "order, not the best-looking one; never-seen scenes: their first view) with each panel's PSNR under it "
