@@ -393,7 +393,7 @@ class ReconstructionProfile:
     mixed_epochs: int = 0
     denoiser_edge_range_floor: float = 0.1
     normal_depth_warmup_steps: int = 0
-    denoiser_perceptual_gain: float = 64.0
+    denoiser_perceptual_gain: float = 8.0
     denoiser_learning_rate: float | None = None
     denoiser_decay: str = "constant"
     denoiser_warmup_steps: int = 0

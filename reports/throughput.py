@@ -9,7 +9,7 @@ auxiliary buffers, the kernel's wall time). After one untimed render of each, :d
 rounds alternate the two (Mitsuba first in even rounds, ours first in odd ones, with a pause
 after Mitsuba's render so that its worker threads are idle before ours start); the ratio of a
 scene is the median over rounds of Mitsuba's seconds over ours, so the machine's drift between
-rounds cancels. Issue 12's targets (:data:`TARGETS`) stand beside the ratios.
+rounds cancels. The project's targets (:data:`TARGETS`) stand beside the ratios.
 
 Both renderers estimate the same image: each row records the mean radiance of both frames and
 their difference in standard errors of ours (from our per-pixel variance, doubled for two
@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import json
 import statistics
-import time
 import warnings
 from pathlib import Path
 
@@ -34,6 +33,7 @@ from tabulate import tabulate
 from kdtrace.cache import atomic_write_bytes
 from kdtrace.config import Config
 from kdtrace.provenance import stamp
+from kdtrace.timing import alternating_seconds, timed
 from reports.error_time import MitsubaTimer, load_note, scene_rows
 from reports.metrics import Metric, write_metrics
 from reports.notes import ReportNote
@@ -42,7 +42,7 @@ from reports.notes import ReportNote
 SIZE, SPP = 256, 8
 #: max_depth 1: camera rays and the emission they see; 3: one indirect bounce, the paper's setting.
 DEPTHS = (1, 3)
-#: Issue 12's targets for ours / Mitsuba paths/s, per max_depth.
+#: The project's targets for ours / Mitsuba paths/s, per max_depth.
 TARGETS = {1: 0.25, 3: 0.5}
 ROUNDS = 5
 #: Seconds to wait after a Mitsuba render before timing ours (Dr.Jit's threads spin briefly when idle).
@@ -50,19 +50,6 @@ PAUSE_SECONDS = 0.3
 #: Largest allowed difference of the two frames' mean radiances, in standard errors.
 MEAN_SIGMAS = 5.0
 ROW_VERSION = 1
-
-
-def _alternating_seconds(ours, theirs, rounds: int) -> tuple[list[float], list[float]]:
-    """Seconds of ``ours()`` and ``theirs()`` over ``rounds`` rounds, the order alternating."""
-    ours_seconds, their_seconds = [], []
-    for index in range(rounds):
-        for side in (("theirs", "ours") if index % 2 == 0 else ("ours", "theirs")):
-            if side == "theirs":
-                their_seconds.append(theirs())
-                time.sleep(PAUSE_SECONDS)
-            else:
-                ours_seconds.append(ours())
-    return ours_seconds, their_seconds
 
 
 def measure_depth(scene, tree, depth: int, seed: int) -> dict:
@@ -78,13 +65,12 @@ def measure_depth(scene, tree, depth: int, seed: int) -> dict:
         return frames["ours"].seconds
 
     def theirs() -> float:
-        started = time.perf_counter()
-        frames["mitsuba"] = mitsuba.image(SPP, seed)
-        return time.perf_counter() - started
+        frames["mitsuba"], seconds = timed(lambda: mitsuba.image(SPP, seed))
+        return seconds
 
     theirs()  # compiles Mitsuba's kernels (ours were compiled by the scene's first render), untimed
     ours()
-    ours_seconds, their_seconds = _alternating_seconds(ours, theirs, ROUNDS)
+    their_seconds, ours_seconds = alternating_seconds(theirs, ours, ROUNDS, pause_after_first=PAUSE_SECONDS)
     ratios = [t / o for o, t in zip(ours_seconds, their_seconds, strict=True)]
     ours_frame, their_rgb = frames["ours"], frames["mitsuba"]
     pixels = ours_frame.rgb.shape[0] * ours_frame.rgb.shape[1]

@@ -39,7 +39,7 @@ def test_agree_and_tie(quad):
 
 
 def test_a_lost_hit_is_wrong_even_on_an_edge(quad):
-    """Issue 13: the oracle hits the shared diagonal, an edge and a vertex; a side that went on to
+    """The oracle hits the shared diagonal, an edge and a vertex; a side that went on to
     the far wall (or missed) is wrong, not an edge/vertex case."""
     xy = [(0.5, 0.5), (0.5, 1e-9), (0.0, 0.0), (0.25, 0.6)]
     theirs = ([1.0] * 4, [0, 0, 1, 1])
