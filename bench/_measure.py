@@ -35,6 +35,7 @@ from kdtrace.oracle import intersect_brute_force
 from kdtrace.plugins import CheckedAccelerator, load_accelerator
 from kdtrace.rays import primary_rays, random_rays
 from kdtrace.scene import Scene
+from kdtrace.timing import timed
 from references.agreement import UNEXPLAINED, WRONG, TriangleGeometry, compare_hits, compare_occlusion
 from references.embree import EmbreeIntersector
 
@@ -170,9 +171,7 @@ class SceneBench:
             The factory cannot be imported, raises, or returns no accelerator.
         """
         def load() -> CheckedAccelerator:
-            start = time.perf_counter()
-            accelerator = load_accelerator(spec, self.scene)
-            self._cache[("plugin_load_seconds", spec)] = time.perf_counter() - start
+            accelerator, self._cache[("plugin_load_seconds", spec)] = timed(lambda: load_accelerator(spec, self.scene))
             return accelerator
 
         return self._get(("plugin", spec), load)
@@ -204,21 +203,20 @@ class SceneBench:
 def timed_call(benchmark, fn: Callable[[], Any], rounds: int, warmup_rounds: int) -> tuple[Any, float]:
     """Run ``fn`` through ``benchmark.pedantic``; return its last result and the shortest timed round.
 
-    Each call is also timed here with ``perf_counter`` so the rate is available
-    whether or not benchmarking is enabled (a disabled pytest-benchmark calls ``fn``
-    once, without warm-up).
+    Each call is also timed here (wall time, :func:`kdtrace.timing.timed`) so the rate is
+    available whether or not benchmarking is enabled (a disabled pytest-benchmark calls
+    ``fn`` once, without warm-up).
     """
     durations = []
 
     def call():
-        start = time.perf_counter()
-        result = fn()
-        durations.append(time.perf_counter() - start)
+        result, seconds = timed(fn)
+        durations.append(seconds)
         return result
 
     result = benchmark.pedantic(call, rounds=rounds, warmup_rounds=warmup_rounds, iterations=1)
-    timed = durations[warmup_rounds:] or durations
-    return result, min(timed)
+    timed_rounds = durations[warmup_rounds:] or durations
+    return result, min(timed_rounds)
 
 
 def run_query(intersector: EmbreeIntersector | KDTree | CheckedAccelerator, batch: RayBatch, query: str):

@@ -37,7 +37,6 @@ adds the same-run ratios ``mitsuba_same_psnr_over_pipeline_seconds`` and
 
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -48,6 +47,7 @@ from bench._measure import SEED, BenchmarkValidationError, timed_call
 from bench._measure_render import MEAN_SIGMAS, check_finite
 from kdtrace.kdtree import KDTree, build_kdtree
 from kdtrace.scene import Scene
+from kdtrace.timing import timed
 from reconstruction.baselines import bicubic
 from reports.combined import quality
 from reports.error_time import (
@@ -126,11 +126,9 @@ class PipelineBench:
         width, height = self.size
         frame = render(self.scene, spp=self.spp, max_depth=MAX_DEPTH, seed=self.seed, width=width // 2,
                        height=height // 2, aux=True, tree=self.tree())
-        started = time.perf_counter()
-        denoised = denoise_frame(self.models.denoisers[self.scene.name], frame)
-        middle = time.perf_counter()
-        final = superresolve_frame(self.models.superres, denoised)
-        seconds = {"render": frame.seconds, "denoise": middle - started, "superres": time.perf_counter() - middle}
+        denoised, denoise_seconds = timed(lambda: denoise_frame(self.models.denoisers[self.scene.name], frame))
+        final, superres_seconds = timed(lambda: superresolve_frame(self.models.superres, denoised))
+        seconds = {"render": frame.seconds, "denoise": denoise_seconds, "superres": superres_seconds}
         return final, frame, seconds
 
     def pipeline_psnr(self) -> float:
@@ -178,8 +176,8 @@ def measure_pipeline(benchmark, bench: PipelineBench, side: str) -> dict[str, An
         runs: list[tuple[np.ndarray, Any, dict[str, float]]] = []
         benchmark.pedantic(lambda: runs.append(bench.run_pipeline()), rounds=ROUNDS, warmup_rounds=WARMUP_ROUNDS,
                            iterations=1)
-        timed = runs[WARMUP_ROUNDS:] or runs
-        best = min(timed, key=lambda run: sum(run[2].values()))
+        timed_runs = runs[WARMUP_ROUNDS:] or runs
+        best = min(timed_runs, key=lambda run: sum(run[2].values()))
         final, frame, seconds = runs[-1]
         check_finite(final, f"{bench.scene.name} pipeline")
         if final.min() < 0.0 or final.max() > 1.0:

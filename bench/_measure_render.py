@@ -55,6 +55,7 @@ from bench._measure import SEED, BenchmarkValidationError, machine_info, timed_c
 from kdtrace.kdtree import VARIANTS, KDTree, build_kdtree
 from kdtrace.render import ALL_FEATURES, RenderResult, render
 from kdtrace.scene import Scene
+from kdtrace.timing import alternating_seconds, timed
 
 #: Mitsuba's ``max_depth`` convention: 3 = one indirect bounce, the paper's setting.
 MAX_DEPTH = 3
@@ -237,15 +238,9 @@ def paired_ratio(numerator: Callable[[], RenderResult], denominator: Callable[[]
     render of a pair was measurably slower than the second whichever it was, and an
     even number of alternating pairs cancels that order effect. Both sides are warm.
     """
-    ratios = []
-    for index in range(pairs):
-        if index % 2 == 0:
-            a = numerator().seconds
-            b = denominator().seconds
-        else:
-            b = denominator().seconds
-            a = numerator().seconds
-        ratios.append(a / b)
+    numerator_seconds, denominator_seconds = alternating_seconds(lambda: numerator().seconds,
+                                                                 lambda: denominator().seconds, pairs)
+    ratios = [a / b for a, b in zip(numerator_seconds, denominator_seconds, strict=True)]
     return {"geomean": float(np.exp(np.mean(np.log(ratios)))), "ratios": ratios}
 
 
@@ -309,9 +304,7 @@ def measure_throughput(benchmark, bench: RenderBench, renderer: str, size: tuple
     def theirs() -> np.ndarray:
         return np.array(mi.render(mitsuba_scene, integrator=integrator, spp=spp, seed=seed), dtype=np.float32)
 
-    started = time.perf_counter()
-    theirs()  # JIT compilation and scene upload: never timed (also when benchmarking is disabled)
-    first_seconds = time.perf_counter() - started
+    _, first_seconds = timed(theirs)  # JIT compilation and scene upload: never timed (also when benchmarking is disabled)
     image, seconds = timed_call(benchmark, theirs, ROUNDS, WARMUP_ROUNDS)
     if key not in bench.images:
         bench.images[key] = ours()

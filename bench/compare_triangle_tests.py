@@ -14,26 +14,22 @@ from __future__ import annotations
 import os
 import statistics
 import sys
-import time
 import warnings
 
 from kdtrace import rays
 from kdtrace.kdtree import build_kdtree
 from kdtrace.render import render
 from kdtrace.scenes import load_scene
+from kdtrace.timing import alternating_seconds, timed
 
 
 def alternating_medians(run, rounds: int) -> tuple[float, float]:
-    """Median seconds of ``run(watertight)`` for True and False, the order alternating per round."""
-    seconds = {True: [], False: []}
+    """Median wall seconds of ``run(watertight)`` for True and False, the order alternating per round."""
     for watertight in (True, False):
         run(watertight, warm_up=True)
-    for index in range(rounds):
-        for watertight in (True, False) if index % 2 else (False, True):
-            started = time.perf_counter()
-            run(watertight, warm_up=False)
-            seconds[watertight].append(time.perf_counter() - started)
-    return statistics.median(seconds[True]), statistics.median(seconds[False])
+    moller_trumbore, watertight = alternating_seconds(lambda: timed(lambda: run(False, warm_up=False))[1],
+                                                      lambda: timed(lambda: run(True, warm_up=False))[1], rounds)
+    return statistics.median(watertight), statistics.median(moller_trumbore)
 
 
 def main(scene_names: list[str]) -> None:

@@ -33,8 +33,6 @@ from __future__ import annotations
 
 import copy
 import math
-import statistics
-import time
 import warnings
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
@@ -46,7 +44,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from kdtrace.allocator import freed_memory_retained
+from kdtrace.timing import median_seconds
 from reconstruction import hdr, metrics
 from reconstruction.models import POOLING_MULTIPLE, Denoiser
 
@@ -305,25 +303,6 @@ class FastInferenceDecision:
 
     chosen: str
     results: tuple[OptionResult, ...]
-
-
-def median_seconds(call: Callable[[], object], repeats: int = 3, warmup: int = 1) -> tuple[float, object]:
-    """Median wall time (s) of ``repeats`` calls after ``warmup`` untimed ones, and the last result.
-
-    The calls run with freed memory kept for reuse (:func:`kdtrace.allocator.freed_memory_retained`).
-    """
-    if repeats < 1:
-        raise ValueError(f"repeats must be >= 1, got {repeats}")
-    result = None
-    times = []
-    with freed_memory_retained():
-        for _ in range(warmup):
-            result = call()
-        for _ in range(repeats):
-            started = time.perf_counter()
-            result = call()
-            times.append(time.perf_counter() - started)
-    return statistics.median(times), result
 
 
 def select_fast_inference(

@@ -26,8 +26,9 @@ import numpy as np
 import torch
 from torch import nn
 
+from kdtrace.timing import median_seconds
 from reconstruction import hdr, metrics
-from reconstruction.inference import FastInferenceDecision, denoise, make_runner, median_seconds, select_fast_inference
+from reconstruction.inference import FastInferenceDecision, denoise, make_runner, select_fast_inference
 from reconstruction.models import bicubic_upsample, superresolve, ycbcr_from_rgb
 
 

@@ -41,6 +41,7 @@ from tqdm import tqdm
 from kdtrace.cache import atomic_write_bytes
 from kdtrace.config import Config
 from kdtrace.provenance import stamp
+from kdtrace.timing import TIMING_REPEATS, shortest
 from reports.error_time import (
     Reconstruction,
     denoise_frame,
@@ -56,7 +57,6 @@ from reports.paper_figures import (
     COMBINED_ESTIMATES,
     COMBINED_SPP,
 )
-from reports.timing import TIMING_REPEATS, shortest
 
 #: Bump when what a row measures changes: cached rows become stale.
 ROW_VERSION = 2

@@ -82,10 +82,10 @@ from kdtrace.allocator import freed_memory_retained
 from kdtrace.cache import atomic_write_bytes, content_key
 from kdtrace.config import Config, ProfileConfig, ReconstructionProfile
 from kdtrace.provenance import stamp
+from kdtrace.timing import TIMING_REPEATS, shortest
 from reports.metrics import Metric, write_metrics
 from reports.notes import ReportNote
 from reports.paper_figures import ACCEPTABLE_PSNR
-from reports.timing import TIMING_REPEATS, shortest
 
 #: Bump when what a row measures changes: cached rows become stale.
 ROW_VERSION = 5

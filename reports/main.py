@@ -36,13 +36,13 @@ import importlib
 import importlib.util
 import inspect
 import json
-import time
 import warnings
 from pathlib import Path
 
 from kdtrace.cache import atomic_write_bytes
 from kdtrace.config import Config
 from kdtrace.provenance import stamp
+from kdtrace.timing import timed
 from reports.metrics import Metric
 from reports.notes import ReportNote
 from reports.plugins import check_specs
@@ -168,12 +168,10 @@ def _run_part(name: str, module_name: str, config: Config, profile_name: str, ou
 
     module = importlib.import_module(module_name)
     before = _snapshot(out_dir)
-    started = time.perf_counter()
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        metrics = module.generate(config, profile_name, out_dir, fresh=fresh, progress=progress,
-                                  **_plugin_arguments(module.generate, plugins or {}))
-    seconds = time.perf_counter() - started
+        metrics, seconds = timed(lambda: module.generate(config, profile_name, out_dir, fresh=fresh, progress=progress,
+                                                         **_plugin_arguments(module.generate, plugins or {})))
     notes = []
     for warning in caught:
         text = str(warning.message)

@@ -51,6 +51,7 @@ from kdtrace.config import (
     ReconstructionProfile,
 )
 from kdtrace.provenance import stamp
+from kdtrace.timing import timed
 from reports.metrics import Metric, write_metrics
 from reports.notes import ReportNote
 
@@ -120,9 +121,8 @@ def measure_throughput(scene_name: str, profile: ReconstructionProfile, workers:
                     client.wait_for_workers(count, timeout=120)
                     client.run(_warm, scene, profile)
                     load = os.getloadavg()[0]
-                    started = time.perf_counter()
-                    dataset = generate_dataset(scene, profile, progress=progress, client=client, config=config)
-                    seconds = time.perf_counter() - started
+                    dataset, seconds = timed(lambda client=client: generate_dataset(scene, profile, progress=progress,
+                                                                                    client=client, config=config))
                 views = len(dataset.manifest["views"])
                 busy = sum(view["unit_seconds"] for view in dataset.manifest["views"])
                 runs.append({"workers": count, "seconds": seconds, "views_per_second": views / seconds,
@@ -184,17 +184,17 @@ def calibrate_scene(scene_name: str, target: ReconstructionProfile, size: int, s
     try:
         noisy = []
         for side in (size, size, 2 * size):  # the first call loads the kernels and the tree
-            started = time.process_time()
-            render(scene, spp=target.spp, max_depth=target.max_depth, seed=1, width=side, height=side, aux=True)
-            noisy.append(time.process_time() - started)
+            _, cpu_seconds = timed(lambda side=side: render(scene, spp=target.spp, max_depth=target.max_depth, seed=1,
+                                                            width=side, height=side, aux=True), clock=time.process_time)
+            noisy.append(cpu_seconds)
         variant = activate_variant(reference_variant(None))
         reference = []
         with _one_jit_thread():
             for count in (spp[0], *spp):
-                started = time.process_time()
-                render_reference(scene, spp=count, max_depth=target.max_depth, seed=1, width=size, height=size,
-                                 cache=False, variant=variant)
-                reference.append(time.process_time() - started)
+                _, cpu_seconds = timed(lambda count=count: render_reference(scene, spp=count, max_depth=target.max_depth, seed=1,
+                                                                            width=size, height=size, cache=False,
+                                                                            variant=variant), clock=time.process_time)
+                reference.append(cpu_seconds)
     finally:
         numba.set_num_threads(previous)
     noisy_fixed, noisy_per_pixel = _fit((size * size, 4 * size * size), (noisy[1], noisy[2]))

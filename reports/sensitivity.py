@@ -43,9 +43,9 @@ from kdtrace.config import Config, KDTreeConfig
 from kdtrace.kdtree import VARIANTS, build_kdtree
 from kdtrace.provenance import machine
 from kdtrace.scenes import load_scene
+from kdtrace.timing import interleaved_seconds, paired_speedup, timing_ray_sets
 from reports.metrics import Metric
 from reports.paper_figures import TABLE1
-from reports.timing import interleaved_seconds, paired_speedup, timing_ray_sets
 
 #: Version of the row layout; rows of another version are measured again.
 ROW_VERSION = 1

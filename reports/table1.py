@@ -48,13 +48,13 @@ from kdtrace.provenance import machine
 from kdtrace.rays import shadow_rays
 from kdtrace.render import render, renderer_fingerprint
 from kdtrace.scenes import load_scene
+from kdtrace.timing import TIMING_ROUNDS, interleaved_seconds, paired_speedup, timed, timing_ray_sets
 from references.agreement import OURS_EXACT, UNEXPLAINED, WRONG, check_scene, format_table
 from references.embree import EmbreeIntersector
 from reports import build_scaling, sensitivity
 from reports.metrics import Metric, write_metrics
 from reports.notes import ReportNote
 from reports.paper_figures import TABLE1
-from reports.timing import TIMING_ROUNDS, interleaved_seconds, paired_speedup, timing_ray_sets
 
 #: Version of the row layout; rows measured with another version are measured again.
 ROW_VERSION = 9
@@ -282,9 +282,7 @@ def plugin_row(name: str, spec: str, config: Config, profile_name: str, progress
                               "threads": numba.get_num_threads()}
     try:
         progress.set_postfix_str(f"{name}: plug-in {spec}: factory")
-        started = time.perf_counter()
-        accelerator = load_accelerator(spec, scene)
-        row["load_seconds"] = time.perf_counter() - started
+        accelerator, row["load_seconds"] = timed(lambda: load_accelerator(spec, scene))
         stats = accelerator.stats
         for key in PLUGIN_STATS:
             value = stats.get(key)

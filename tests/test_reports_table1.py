@@ -6,8 +6,9 @@ import warnings
 
 import pytest
 
+from kdtrace import timing
 from kdtrace.kdtree import VARIANTS, build_kdtree
-from reports import table1, timing
+from reports import table1
 
 
 @pytest.fixture(scope="module")

@@ -8,6 +8,7 @@ import pandas as pd
 import pytest
 
 from kdtrace.config import ProfileConfig, load_config
+from kdtrace.timing import alternating_seconds
 from reports import throughput
 from reports.metrics import read_metrics
 
@@ -30,7 +31,7 @@ def tiny_config():
 def test_alternating_rounds_take_turns():
     calls = []
     ours, theirs = _recorder(calls, "ours", 1.0), _recorder(calls, "theirs", 2.0)
-    ours_seconds, their_seconds = throughput._alternating_seconds(ours, theirs, 3)
+    their_seconds, ours_seconds = alternating_seconds(theirs, ours, 3)
     assert calls == ["theirs", "ours", "ours", "theirs", "theirs", "ours"]
     assert ours_seconds == [1.0] * 3 and their_seconds == [2.0] * 3
 
