@@ -45,12 +45,12 @@ from kdtrace.timing import TIMING_REPEATS, shortest
 from reports.error_time import (
     Reconstruction,
     denoise_frame,
-    load_note,
     run_cli,
     scene_rows,
     superresolve_frame,
     timed_reconstruction,
 )
+from reports.error_time_present import load_note
 from reports.metrics import Metric, write_metrics
 from reports.paper_figures import (
     COMBINED_CBOX_MEASURED,

@@ -56,13 +56,16 @@ pipeline over Mitsuba at equal error.
 Rows are measured per scene and cached in ``OUT_DIR/rows/error_time/SCENE.json`` with a
 content key; a rerun reuses them (and says so), ``fresh=True`` measures again. Plug-in rows
 are cached apart, in ``OUT_DIR/rows/error_time-plugins/SCENE/``.
+
+This module measures and holds the entry points (:func:`generate`, :func:`main`); the curve
+maths are in :mod:`reports.error_time_curves`, the plots and Markdown in
+:mod:`reports.error_time_present`.
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
-import io
 import json
 import math
 import os
@@ -75,289 +78,27 @@ from typing import Any
 
 import numpy as np
 import pandas as pd
-from tabulate import tabulate
 from tqdm import tqdm
 
 from kdtrace.allocator import freed_memory_retained
 from kdtrace.cache import atomic_write_bytes, content_key
 from kdtrace.config import Config, ProfileConfig, ReconstructionProfile
-from kdtrace.provenance import stamp
 from kdtrace.timing import TIMING_REPEATS, shortest
+from reports.error_time_curves import all_measured, plugin_method
+from reports.error_time_present import write_outputs
 from reports.metrics import Metric, write_metrics
 from reports.notes import ReportNote
-from reports.paper_figures import ACCEPTABLE_PSNR
 
 #: Bump when what a row measures changes: cached rows become stale.
 ROW_VERSION = 5
-#: The methods, in table order, with their labels.
-METHODS = {
-    "kdtrace": "ours, path tracer",
-    "mitsuba": "Mitsuba 3 path",
-    "kdtrace+denoiser": "ours + denoiser",
-    "kdtrace-half+denoiser+superres": "ours ½ res + denoiser + SR 2x",
-    "kdtrace+oidn": "ours + OIDN",
-    "kdtrace+denoiser-blend": "ours + denoiser, blended with input",
-    "mitsuba+denoiser": "Mitsuba + our denoiser",
-    "mitsuba+oidn": "Mitsuba + OIDN",
-    "kdtrace+demodulated": "ours + demodulated denoiser",
-    "mitsuba+demodulated": "Mitsuba + demodulated denoiser",
-}
-#: Our reconstruction pipelines, compared with brute force in the headline.
-PIPELINES = ("kdtrace+denoiser", "kdtrace+denoiser-blend", "kdtrace-half+denoiser+superres", "mitsuba+denoiser",
-             "kdtrace+demodulated", "mitsuba+demodulated")
-#: Every denoising pipeline of the headline: ours and both renderers with OIDN.
-DENOISING = (*PIPELINES, "kdtrace+oidn", "mitsuba+oidn")
-#: The brute-force renderer each pipeline starts from (its own renderer's curve is the first comparison).
-RENDERER = {method: "mitsuba" if method.startswith("mitsuba") else "kdtrace" for method in METHODS}
 #: Bump when what a plug-in denoiser's row measures changes.
 PLUGIN_ROW_VERSION = 1
 
 
-def plugin_method(spec: str) -> str:
-    """The sweep method of the plug-in denoiser ``spec``: ``kdtrace+SPEC`` (``kdtrace+plugin:SPEC`` if that is one of ours)."""
-    method = f"kdtrace+{spec}"
-    return f"kdtrace+plugin:{spec}" if method in METHODS else method
-
-
-def method_label(method: str) -> str:
-    """A method's label: :data:`METHODS`'s, or ``ours + plug-in SPEC`` for a plug-in denoiser's."""
-    return METHODS.get(method) or f"ours + plug-in {method.removeprefix('kdtrace+').removeprefix('plugin:')}"
-
-
-def methods_of(points: pd.DataFrame) -> list[str]:
-    """The methods of ``points`` in table order: ours (:data:`METHODS`) first, then plug-ins in measured order."""
-    present = list(dict.fromkeys(points["method"]))
-    return [m for m in METHODS if m in present] + [m for m in present if m not in METHODS]
-
-
-def denoising_methods(methods: Sequence[str]) -> list[str]:
-    """The headline's pipelines among ``methods``: :data:`DENOISING` and every plug-in denoiser's."""
-    return [m for m in DENOISING if m in methods] + [m for m in methods if m not in METHODS]
-
-
-#: PSNR thresholds (dB) of the equal-error table: the paper's acceptable 30 dB, and 35 dB.
-PSNR_THRESHOLDS = (ACCEPTABLE_PSNR, 35.0)
-#: relMSE thresholds of the equal-error table.
-RELMSE_THRESHOLDS = (1e-2, 1e-3)
-#: Display-referred PSNR thresholds (dB) of the equal-error table (the space of the paper's 30 dB).
-DISPLAY_PSNR_THRESHOLDS = (ACCEPTABLE_PSNR, 35.0)
-#: The error columns of a point, and whether higher is better: linear PSNR, HDR relMSE, display PSNR, FLIP.
-ERRORS = {"psnr": True, "relmse": False, "display_psnr": True, "flip": False}
 #: ε of relMSE (as :data:`reconstruction.metrics.RELMSE_EPSILON`).
 RELMSE_EPSILON = 0.01
 
 
-# ------------------------------------------------------------------ curves (pure logic)
-def _curve(seconds: Sequence[float], values: Sequence[float], log_values: bool) -> tuple[np.ndarray, np.ndarray]:
-    """Points sorted by seconds, in interpolation space (log seconds; log values if asked).
-
-    Points with equal seconds are averaged (in interpolation space), so the abscissa is
-    strictly increasing. Non-positive seconds, or non-positive values with
-    ``log_values``, raise ``ValueError``.
-    """
-    x = np.asarray(seconds, np.float64)
-    y = np.asarray(values, np.float64)
-    if x.shape != y.shape or x.ndim != 1 or x.size == 0:
-        raise ValueError(f"need matching non-empty 1-D seconds and values, got {x.shape} and {y.shape}")
-    if not (np.all(np.isfinite(x)) and np.all(x > 0)):
-        raise ValueError(f"seconds must be positive and finite, got {x.tolist()}")
-    if log_values and not np.all(y > 0):
-        raise ValueError(f"log interpolation needs positive values, got {y.tolist()}")
-    lx = np.log(x)
-    ly = np.log(y) if log_values else y
-    unique, inverse = np.unique(lx, return_inverse=True)
-    means = np.bincount(inverse, weights=ly) / np.bincount(inverse)
-    return unique, means
-
-
-def value_at_seconds(seconds: Sequence[float], values: Sequence[float], at: float, log_values: bool) -> float:
-    """A method's error at ``at`` seconds, interpolated between its measured points.
-
-    Parameters
-    ----------
-    seconds : sequence of float
-        Measured wall-clock seconds (any order).
-    values : sequence of float
-        Error at each point (relMSE, or PSNR in dB).
-    at : float
-        Seconds to read the curve at.
-    log_values : bool
-        Interpolate ``log(value)`` (relMSE: straight lines on log-log axes) instead of
-        the value itself (PSNR, already logarithmic), always against ``log(seconds)``.
-
-    Returns
-    -------
-    float
-        The interpolated value, or NaN when ``at`` lies outside the measured seconds
-        (never extrapolated).
-    """
-    x, y = _curve(seconds, values, log_values)
-    where = math.log(at)
-    if not x[0] - 1e-12 <= where <= x[-1] + 1e-12:
-        return math.nan
-    result = float(np.interp(where, x, y))
-    return math.exp(result) if log_values else result
-
-
-@dataclass(frozen=True)
-class Reach:
-    """When a method first reaches an error threshold.
-
-    Attributes
-    ----------
-    seconds : float or None
-        Interpolated seconds at the first crossing; the fastest point's seconds when
-        that point already meets the threshold; None when not reached.
-    kind : str
-        ``"exact"`` (interpolated crossing), ``"at most"`` (the fastest measured point
-        already meets it: the method may need less) or ``"not reached"``.
-    """
-
-    seconds: float | None
-    kind: str
-
-    def cell(self) -> str:
-        """Table cell: seconds, ``≤ seconds`` or ``not reached``."""
-        if self.kind == "not reached":
-            return "not reached"
-        return ("≤ " if self.kind == "at most" else "") + f"{self.seconds:.3g}"
-
-
-def seconds_to_reach(seconds: Sequence[float], values: Sequence[float], threshold: float,
-                     higher_is_better: bool) -> Reach:
-    """Seconds a method needs to reach ``threshold`` (first crossing along increasing seconds).
-
-    Parameters
-    ----------
-    seconds, values : sequence of float
-        The measured curve (values: PSNR in dB with ``higher_is_better``, relMSE without).
-    threshold : float
-        PSNR to reach or exceed, or relMSE to reach or go below.
-    higher_is_better : bool
-        True for PSNR (interpolated linearly over log seconds), False for relMSE
-        (interpolated in log-log).
-
-    Returns
-    -------
-    Reach
-        The crossing between the last point that misses and the first that meets the
-        threshold; curves need not be monotone (the first crossing counts).
-    """
-    log_values = not higher_is_better
-    x, y = _curve(seconds, values, log_values)
-    target = math.log(threshold) if log_values else threshold
-    meets = y >= target if higher_is_better else y <= target
-    if not meets.any():
-        return Reach(None, "not reached")
-    first = int(np.argmax(meets))
-    if first == 0:
-        return Reach(float(np.min(np.asarray(seconds, np.float64))), "at most")
-    x0, x1, y0, y1 = x[first - 1], x[first], y[first - 1], y[first]
-    fraction = (target - y0) / (y1 - y0)
-    return Reach(float(math.exp(x0 + fraction * (x1 - x0))), "exact")
-
-
-def speedup_cell(reference: Reach, ours: Reach, reference_max_seconds: float) -> str:
-    """How many times faster ours reaches a threshold than the reference, as a table cell.
-
-    Bounds are stated, never guessed: the reference not reaching it within its
-    measured range gives ``> max/ours``; ours reaching it already at its fastest point
-    gives a lower bound ``≥``; the reference reaching it at its fastest point gives an
-    upper bound ``≤``; both bounded the same way, or ours not reaching it, gives "—".
-    """
-    if ours.kind == "not reached":
-        return "—"
-    if reference.kind == "not reached":
-        return f"> {reference_max_seconds / ours.seconds:.3g}x"
-    ratio = reference.seconds / ours.seconds
-    if reference.kind == "exact" and ours.kind == "exact":
-        return f"{ratio:.3g}x"
-    if reference.kind == "exact":  # ours: at most its fastest seconds
-        return f"≥ {ratio:.3g}x"
-    if ours.kind == "exact":  # reference: at most its fastest seconds
-        return f"≤ {ratio:.3g}x"
-    return "—"
-
-
-def common_seconds(low: float, high: float) -> list[float]:
-    """Round seconds (1 and 3 times a power of ten) within ``[low, high]`` for the equal-time table."""
-    if not 0 < low <= high:
-        raise ValueError(f"need 0 < low <= high, got {low}, {high}")
-    grid = []
-    for exponent in range(math.floor(math.log10(low)) - 1, math.ceil(math.log10(high)) + 1):
-        for mantissa in (1.0, 3.0):
-            value = mantissa * 10.0**exponent
-            if low <= value <= high:
-                grid.append(float(f"{value:.12g}"))
-    return grid
-
-
-def equal_time_table(points: pd.DataFrame, grid: Sequence[float]) -> pd.DataFrame:
-    """Each method's PSNR and relMSE at the common seconds of ``grid`` (NaN outside its range).
-
-    Parameters
-    ----------
-    points : DataFrame
-        One scene's points: ``method``, ``seconds``, ``psnr``, ``relmse``.
-    grid : sequence of float
-        Seconds to read every curve at.
-
-    Returns
-    -------
-    DataFrame
-        Columns ``method``, ``seconds``, ``psnr``, ``relmse``.
-    """
-    rows = []
-    for method, group in points.groupby("method", sort=False):
-        for at in grid:
-            rows.append({"method": method, "seconds": at,
-                         "psnr": value_at_seconds(group["seconds"], group["psnr"], at, log_values=False),
-                         "relmse": value_at_seconds(group["seconds"], group["relmse"], at, log_values=True)})
-    return pd.DataFrame(rows, columns=["method", "seconds", "psnr", "relmse"])
-
-
-def equal_error_table(points: pd.DataFrame, psnr_thresholds: Sequence[float] = PSNR_THRESHOLDS,
-                      relmse_thresholds: Sequence[float] = RELMSE_THRESHOLDS,
-                      display_thresholds: Sequence[float] = DISPLAY_PSNR_THRESHOLDS) -> dict[str, dict[str, Reach]]:
-    """Per method, the :class:`Reach` of every threshold (keys ``"display 30 dB"``, ``"linear 30 dB"``,
-    ``"relMSE 0.01"``); display thresholds only where the points have display PSNRs."""
-    table: dict[str, dict[str, Reach]] = {}
-    for method, group in points.groupby("method", sort=False):
-        cells = {}
-        if _measured(group, "display_psnr", method):
-            for threshold in display_thresholds:
-                cells[f"display {threshold:g} dB"] = seconds_to_reach(group["seconds"], group["display_psnr"], threshold,
-                                                                      True)
-        for threshold in psnr_thresholds:
-            cells[f"linear {threshold:g} dB"] = seconds_to_reach(group["seconds"], group["psnr"], threshold, True)
-        for threshold in relmse_thresholds:
-            cells[f"relMSE {threshold:g}"] = seconds_to_reach(group["seconds"], group["relmse"], threshold, False)
-        table[method] = cells
-    return table
-
-
-def headline(points: pd.DataFrame, spp: int, pipeline: str, reference: str = "mitsuba",
-             error: str = "psnr") -> dict[str, Any]:
-    """Speed-up of ``pipeline`` at ``spp`` over ``reference`` at the same error.
-
-    The pipeline's ``error`` (a key of :data:`ERRORS`: ``psnr``, ``display_psnr``, ``relmse``,
-    ``flip``) at ``spp`` is the target; the reference's seconds to reach it come from
-    :func:`seconds_to_reach` on its curve.
-
-    Returns
-    -------
-    dict
-        ``value`` (the pipeline's error) and ``seconds`` of the
-        pipeline point, the reference's :class:`Reach`, and ``speedup`` (a cell of :func:`speedup_cell`).
-    """
-    ours = points[(points["method"] == pipeline) & (points["spp"] == spp)]
-    if len(ours) != 1:
-        raise ValueError(f"need exactly one {pipeline} point at {spp} spp, found {len(ours)}")
-    ours = ours.iloc[0]
-    theirs = points[points["method"] == reference]
-    reach = seconds_to_reach(theirs["seconds"], theirs[error], float(ours[error]), higher_is_better=ERRORS[error])
-    cell = speedup_cell(reach, Reach(float(ours["seconds"]), "exact"), float(theirs["seconds"].max()))
-    return {"value": float(ours[error]), "seconds": float(ours["seconds"]), "reference": reach, "speedup": cell}
 
 
 # ------------------------------------------------------------------ measuring
@@ -869,25 +610,15 @@ def generate(config: Config, profile_name: str, out_dir: str | Path, fresh: bool
                 warnings.warn(f"error_time: plug-in {row['plugin']!r} on {row['scene']}: {row['failed']}", ReportNote,
                               stacklevel=2)
         rows = with_plugins(rows, extra)
-    metrics = write_outputs(rows, config, profile_name, out_dir)
+    write_outputs(rows, config, profile_name, out_dir)
+    profile = config.profile(profile_name)
+    recon = config.reconstruction.profile(profile.reconstruction_profile)
+    metrics = [metric for row in rows for metric in scene_metrics(row, profile, recon)]
     write_metrics(out_dir, "error_time", metrics)
     return metrics
 
 
-# ------------------------------------------------------------------ outputs
-def load_note(rows: Sequence[dict]) -> str:
-    """A sentence on the machine's 1-minute load average around the measurements (rows that recorded it)."""
-    loads = [value for row in rows for value in row.get("load_average", [])]
-    if not loads:
-        return ""
-    return (f"1-minute load average before/after each scene's measurements: {min(loads):.1f}–{max(loads):.1f} on "
-            f"{os.cpu_count()} cores (above the core count, other processes competed for the CPU and times are "
-            "inflated, the networks' multi-threaded torch times most). ")
-
-
-def points_frame(rows: Sequence[dict]) -> pd.DataFrame:
-    """All measured points of all scenes as one long table (the CSV)."""
-    return pd.DataFrame([{"scene": row["scene"], **point} for row in rows for point in row["points"]])
+# ------------------------------------------------------------------ gated metrics
 
 
 def scene_metrics(row: dict, profile: ProfileConfig, recon: ReconstructionProfile) -> list[Metric]:
@@ -905,13 +636,13 @@ def scene_metrics(row: dict, profile: ProfileConfig, recon: ReconstructionProfil
         if len(denoised):
             metrics.append(Metric(f"error_time/{name}/{metric}_psnr_{recon.spp}spp", "psnr", float(denoised["psnr"].iloc[0]),
                                   f"dB, ours + {what} at {recon.spp} spp vs Mitsuba {row['reference']['spp']} spp"))
-            if _measured(denoised, "display_psnr", method):
+            if all_measured(denoised, "display_psnr", method):
                 metrics.append(Metric(f"error_time/{name}/{metric}_display_psnr_{recon.spp}spp", "psnr",
                                       float(denoised["display_psnr"].iloc[0]),
                                       f"display-referred dB, ours + {what} at {recon.spp} spp"))
     blended = points[points["method"] == "kdtrace+denoiser-blend"]
     for error, prefix, space in (("psnr", "", "linear"), ("display_psnr", "display_", "display-referred")):
-        if len(blended) and _measured(blended, f"input_{error}", "kdtrace+denoiser-blend"):
+        if len(blended) and all_measured(blended, f"input_{error}", "kdtrace+denoiser-blend"):
             margins = blended[error] - blended[f"input_{error}"]
             worst = int(blended["spp"].iloc[int(np.argmin(margins.to_numpy()))])
             metrics.append(Metric(f"error_time/{name}/blended_denoiser_{prefix}margin_over_input_db", "psnr",
@@ -937,190 +668,6 @@ def plugin_metrics(row: dict, recon: ReconstructionProfile) -> list[Metric]:
                                   float(at["psnr"].iloc[0]),
                                   f"dB, ours + plug-in at {recon.spp} spp vs Mitsuba {row['reference']['spp']} spp"))
     return metrics
-
-
-def losses_to_input(points: pd.DataFrame, error: str = "psnr") -> pd.DataFrame:
-    """Points of reconstructions worse than their own noisy input by ``error`` (:data:`ERRORS`): method, spp,
-    the error, the input's, and ``difference`` (the reconstruction's minus the input's)."""
-    column = f"input_{error}"
-    if column not in points or error not in points:
-        return pd.DataFrame(columns=["method", "spp", error, column, "difference"])
-    worse = points[error] < points[column] if ERRORS[error] else points[error] > points[column]
-    below = points[points[column].notna() & worse].copy()
-    below["difference"] = below[error] - below[column]
-    return below[["method", "spp", error, column, "difference"]]
-
-
-def _format(value: float, digits: str) -> str:
-    return "—" if value is None or not math.isfinite(value) else format(value, digits)
-
-
-def plot_scene(row: dict, path: Path) -> Path:
-    """Error against seconds of one scene, as a PNG (Agg): display-referred PSNR, HDR relMSE (log-log) and
-    linear PSNR, one panel each, the legend below the panels so that it covers no data."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    points = pd.DataFrame(row["points"])
-    panels = [(error, label) for error, label in (("display_psnr", "display PSNR (dB)"), ("relmse", "relMSE (HDR)"),
-                                                  ("psnr", "linear PSNR (dB, clipped to [0, 1])")) if error in points]
-    figure, axes = plt.subplots(1, len(panels), figsize=(5.0 * len(panels), 4.4), constrained_layout=True)
-    for method in methods_of(points):
-        group = points[points["method"] == method].sort_values("spp")
-        if group.empty:
-            continue
-        style = ("-o" if method in PIPELINES else "--s" if method == "mitsuba" else "-^" if method in METHODS
-                 else ":D")
-        for axis, (error, _) in zip(axes, panels, strict=True):
-            plot = axis.loglog if error == "relmse" else axis.semilogx
-            plot(group["seconds"], group[error], style, label=method_label(method), markersize=4)
-            first = group.iloc[0]
-            axis.annotate(f"{first['spp']}", (first["seconds"], first[error]), fontsize=7, xytext=(3, 3),
-                          textcoords="offset points")
-    floor = row["reference"]
-    for axis, (error, label) in zip(axes, panels, strict=True):
-        if error == "relmse":
-            axis.axhline(floor["relmse_floor"], color="grey", linewidth=0.8, linestyle=":", label="reference noise")
-        elif error == "psnr" and math.isfinite(floor["psnr_ceiling"]):
-            axis.axhline(floor["psnr_ceiling"], color="grey", linewidth=0.8, linestyle=":", label="reference noise")
-        for threshold in (PSNR_THRESHOLDS if error == "psnr" else DISPLAY_PSNR_THRESHOLDS if error == "display_psnr"
-                          else ()):
-            axis.axhline(threshold, color="black", linewidth=0.5, alpha=0.4)
-        axis.set(xlabel="seconds (render + reconstruction)", ylabel=label, title=f"{row['scene']}: {label}")
-        axis.grid(True, which="both", alpha=0.3)
-    handles, labels = axes[0].get_legend_handles_labels()
-    figure.legend(handles, labels, loc="outside lower center", ncol=min(5, len(labels)), fontsize=7)
-    buffer = io.BytesIO()
-    figure.savefig(buffer, format="png", dpi=110)
-    plt.close(figure)
-    return atomic_write_bytes(path, buffer.getvalue())
-
-
-def scene_markdown(row: dict, recon: ReconstructionProfile) -> str:
-    """One scene's section: plot link, headline, equal-error and equal-time tables."""
-    points = pd.DataFrame(row["points"])
-    name = row["scene"]
-    reference = row["reference"]
-    about = (f"{row['triangles']:,} triangles, {row['width']}x{row['height']}; reference: Mitsuba {reference['spp']} spp "
-             f"({reference['variant']}), whose own noise gives relMSE ≈ {reference['relmse_floor']:.2g} and "
-             f"PSNR ≈ {reference['psnr_ceiling']:.1f} dB (errors near these measure the reference).")
-    lines = [f"## {name}", "", f"![{name}: error against seconds](error_time/{name}.png)", "", about, ""]
-    for error, what, unit in (("display_psnr", "display PSNR", " dB"), ("flip", "FLIP", ""), ("psnr", "linear PSNR", " dB")):
-        below = losses_to_input(points, error)
-        if len(below):
-            cells = [f"{method_label(m)} at {spp} spp ({d:+.3g}{unit})"
-                     for m, spp, d in zip(below["method"], below["spp"], below["difference"], strict=True)]
-            lines += [f"Worse than their own noisy input by {what}: {'; '.join(cells)}.", ""]
-        elif f"input_{error}" in points:
-            lines += [f"No reconstruction is worse than its own noisy input by {what} at any spp.", ""]
-    if "weight" in points:
-        blended = points[points["method"] == "kdtrace+denoiser-blend"].sort_values("spp")
-        lines += ["Blend weights w(spp) of the denoiser (fitted on the validation views): "
-                  + ", ".join(f"{spp} spp {w:.2f}" for spp, w in zip(blended["spp"], blended["weight"], strict=True))
-                  + ".", ""]
-    failures = {spec: status for spec, status in row.get("plugins", {}).items() if status != "ok"}
-    if failures:
-        lines += [f"Plug-in {spec}: {status}" + ("" if not len(points[points["method"] == plugin_method(spec)]) else
-                                                  " (its points before the failure are shown)") + "."
-                  for spec, status in failures.items()] + [""]
-    reach = equal_error_table(points)
-    mitsuba_max = float(points[points["method"] == "mitsuba"]["seconds"].max())
-    # thresholds every method was measured against (a plug-in row may lack the display space)
-    keys = [key for key in reach["mitsuba"] if all(key in cells for cells in reach.values())]
-    header = ["method", *keys]
-    order = methods_of(points)
-    body = [[method_label(method), *(reach[method][key].cell() for key in keys)] for method in order]
-    for pipeline in denoising_methods(order):
-        body.append([f"speed-up of {method_label(pipeline)} over Mitsuba",
-                     *(speedup_cell(reach["mitsuba"][key], reach[pipeline][key], mitsuba_max) for key in keys)])
-    lines += ["Equal error: seconds to reach each threshold (display-referred PSNR, linear PSNR clipped to [0, 1], "
-              "HDR relMSE).", "", tabulate(body, headers=header, tablefmt="github"), ""]
-    grid = common_seconds(float(points["seconds"].min()), float(points["seconds"].max()))
-    if grid:
-        table = equal_time_table(points, grid)
-        body = []
-        for method in order:
-            part = table[table["method"] == method]
-            body.append([method_label(method), *(f"{_format(p, '.1f')} / {_format(r, '.2g')}"
-                                            for p, r in zip(part["psnr"], part["relmse"], strict=True))])
-        lines += ["Equal time: PSNR dB / relMSE at common seconds (interpolated; — outside the measured range).", "",
-                  tabulate(body, headers=["method", *(f"{s:g} s" for s in grid)], tablefmt="github"), ""]
-    return "\n".join(lines)
-
-
-def _measured(points: pd.DataFrame, error: str, *methods: str) -> bool:
-    """Whether every point of ``methods`` has a finite ``error`` (rows measured before a column existed do not)."""
-    if error not in points:
-        return False
-    values = points.loc[points["method"].isin(methods), error]
-    return bool(len(values)) and bool(np.isfinite(values.to_numpy(dtype=float)).all())
-
-
-def headline_table(rows: Sequence[dict], recon: ReconstructionProfile) -> str:
-    """Per scene and pipeline at the denoiser's spp: PSNR, seconds, and the speed-up at equal PSNR over
-    brute force on the pipeline's own renderer and over brute-force Mitsuba."""
-    body = []
-    for row in rows:
-        points = pd.DataFrame(row["points"])
-        for pipeline in denoising_methods(methods_of(points)):
-            if not ((points["method"] == pipeline) & (points["spp"] == recon.spp)).any():
-                continue
-            renderer = RENDERER.get(pipeline, "kdtrace")  # a plug-in denoiser runs after our path tracer
-            shown = {error: headline(points, recon.spp, pipeline, error=error) for error in ("display_psnr", "relmse")
-                     if _measured(points, error, pipeline, "mitsuba")}
-            own = headline(points, recon.spp, pipeline, renderer,
-                           error="display_psnr" if _measured(points, "display_psnr", pipeline, renderer) else "psnr")
-            linear = headline(points, recon.spp, pipeline)
-            body.append([row["scene"], method_label(pipeline),
-                         f"{shown['display_psnr']['value']:.2f}" if "display_psnr" in shown else "—",
-                         f"{linear['seconds']:.3g}", own["speedup"] if renderer == "kdtrace" else "(same)",
-                         shown["display_psnr"]["speedup"] if "display_psnr" in shown else "—",
-                         shown["relmse"]["speedup"] if "relmse" in shown else "—", linear["speedup"]])
-    return tabulate(body, headers=["scene", f"pipeline at {recon.spp} spp", "display PSNR dB", "seconds",
-                                   "speed-up over our brute force (display)", "over Mitsuba, equal display PSNR",
-                                   "over Mitsuba, equal relMSE", "over Mitsuba, equal linear PSNR"], tablefmt="github")
-
-
-def write_outputs(rows: Sequence[dict], config: Config, profile_name: str, out_dir: Path) -> list[Metric]:
-    """Write the Markdown, CSV, plots and provenance (each atomically); return the gated metrics."""
-    profile = config.profile(profile_name)
-    recon = config.reconstruction.profile(profile.reconstruction_profile)
-    provenance = stamp(config.to_dict(), profile=profile_name, seed=profile.seed)
-    machine = provenance["machine"]
-    for row in rows:
-        plot_scene(row, out_dir / "error_time" / f"{row['scene']}.png")
-    threads = rows[0] if rows else {}
-    warned = sorted({w for row in rows for w in row["warnings"]})
-    header = (
-        f"# Run time against error ({profile_name} profile)\n\n"
-        f"Machine: {machine['cpu']}, {machine['cores']} cores; {machine['numba_threads']} numba threads, "
-        f"{threads.get('torch_threads', '?')} torch threads, {threads.get('mitsuba_threads', '?')} Dr.Jit threads "
-        f"(Mitsuba {threads.get('mitsuba_variant', '?')}); OIDN picks its own thread count; {machine['date']}. "
-        f"Frames {profile.sweep_width}x{profile.sweep_height} from each scene's camera, max_depth {recon.max_depth}, "
-        f"spp {', '.join(map(str, profile.sweep_spp))}; reference Mitsuba {profile.sweep_reference_spp} spp. "
-        f"Networks: reconstruction profile `{profile.reconstruction_profile}` (per-scene denoiser trained on "
-        f"{recon.spp} spp inputs at {recon.width}x{recon.height}). Seed {profile.seed}.\n\n"
-        "Seconds of a pipeline = render + reconstruction, warm: our render is the kernel's wall time (no scene "
-        "packing, no compilation); Mitsuba's is `mi.render` plus the copy to NumPy with the scene already loaded, "
-        "after one untimed warm-up render at the same spp; every reconstruction step is timed after a warm-up call. "
-        f"Each time is the shortest of {TIMING_REPEATS} runs. {load_note(rows)}Absolute seconds depend on the machine; compare methods "
-        "within this table only. PSNR on linear images clipped to [0, 1]; relMSE on HDR images "
-        "(the superresolution output is clipped to [0, 1], so its relMSE includes clipping of bright pixels). "
-        "Between measured points curves are interpolated (log-log for relMSE, PSNR over log seconds); outside them "
-        "nothing is extrapolated: `≤ s` means the fastest measured point already meets the threshold, "
-        "`not reached` that no measured point does.\n\n"
-        + (f"Warnings during the run: {'; '.join(warned)}\n\n" if warned else "")
-    )
-    text = (header + f"## Headline: speed-up over brute-force Mitsuba at equal PSNR\n\n"
-            f"Each pipeline at {recon.spp} spp (the denoiser's training spp, the paper's operating point) against the "
-            f"seconds Mitsuba needs to reach the same PSNR on its measured curve.\n\n" + headline_table(rows, recon)
-            + "\n\n" + "\n\n".join(scene_markdown(row, recon) for row in rows) + "\n")
-    atomic_write_bytes(out_dir / "error_time.md", text.encode())
-    atomic_write_bytes(out_dir / "error_time.csv", points_frame(rows).to_csv(index=False).encode())
-    atomic_write_bytes(out_dir / "error_time.provenance.json", json.dumps(provenance, indent=1, default=str).encode())
-    return [metric for row in rows for metric in scene_metrics(row, profile, recon)]
 
 
 def run_cli(generate_report: Callable[..., list[Metric]], description: str, argv: Sequence[str] | None) -> int:

@@ -34,7 +34,8 @@ from kdtrace.cache import atomic_write_bytes
 from kdtrace.config import Config
 from kdtrace.provenance import stamp
 from kdtrace.timing import alternating_seconds, timed
-from reports.error_time import MitsubaTimer, load_note, scene_rows
+from reports.error_time import MitsubaTimer, scene_rows
+from reports.error_time_present import load_note
 from reports.metrics import Metric, write_metrics
 from reports.notes import ReportNote
 

@@ -350,13 +350,13 @@ def _judge_combined(tables: RunTables) -> Finding | None:
 
 
 def _speedup_value(cell: str) -> float:
-    """The number of a speed-up cell of :func:`reports.error_time.speedup_cell` (``"> 4.1x"`` -> 4.1; "—" -> NaN)."""
+    """The number of a speed-up cell of :func:`reports.error_time_curves.speedup_cell` (``"> 4.1x"`` -> 4.1; "—" -> NaN)."""
     found = re.search(r"[\d.]+(?:e[+-]?\d+)?", cell)
     return float(found.group()) if found else math.nan
 
 
 def _judge_speedup(tables: RunTables) -> Finding | None:
-    from reports.error_time import headline
+    from reports.error_time_curves import headline
 
     frame = tables("error_time")
     provenance = tables.provenance()

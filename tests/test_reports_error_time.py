@@ -17,13 +17,13 @@ import pandas as pd
 import pytest
 
 from kdtrace.config import ProfileConfig, ReconstructionConfig, load_config
-from reports.error_time import (
+from reports.error_time import generate
+from reports.error_time_curves import (
     METHODS,
     Reach,
     common_seconds,
     equal_error_table,
     equal_time_table,
-    generate,
     headline,
     seconds_to_reach,
     speedup_cell,

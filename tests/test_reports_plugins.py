@@ -24,7 +24,7 @@ import pandas as pd
 import pytest
 
 from kdtrace.cli import main as cli_main
-from reports import agreement, gate
+from reports import agreement, error_time_curves, gate
 from reports import error_time as et
 from reports import reconstruction_tables as rt
 from reports.metrics import read_metrics
@@ -145,7 +145,7 @@ def _sweep_stand_in(kind, version, measure_scene, config, profile_name, out_dir,
                     demodulated_scenes=()):
     """A synthetic row of our methods (each spp quadruples the seconds and adds 6 dB)."""
     points = []
-    for method in et.METHODS:
+    for method in error_time_curves.METHODS:
         for index, spp in enumerate(SPP):
             point = {"method": method, "spp": spp, "width": SIZE, "height": SIZE, "paths": SIZE * SIZE * spp,
                      "render_seconds": 0.001 * 4**index, "reconstruction_seconds": 0.0, "seconds": 0.001 * 4**index,
@@ -240,7 +240,7 @@ def test_report_puts_plugins_through_every_part(shared_scenes, isolated_cache, t
     assert sorted(plugin_points["spp"]) == list(SPP)
     assert np.isfinite(plugin_points[["psnr", "relmse", "seconds", "input_psnr"]]).all().all()
     assert (plugin_points["reconstruction_seconds"] > 0).all() and (plugin_points["seconds"] > plugin_points["render_seconds"]).all()
-    assert set(et.METHODS) <= set(points["method"]) and f"kdtrace+{BROKEN_DENOISER}" not in set(points["method"])
+    assert set(error_time_curves.METHODS) <= set(points["method"]) and f"kdtrace+{BROKEN_DENOISER}" not in set(points["method"])
     markdown = (out / "error_time.md").read_text()
     label = f"ours + plug-in {BILATERAL}"
     headline = markdown.split("## Headline")[1].split(f"## {SCENE}")[0]
