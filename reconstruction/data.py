@@ -235,7 +235,18 @@ def dataset_dir(scene: Scene, profile: ReconstructionProfile) -> Path:
     return cache_root() / "datasets" / f"{stem}-{dataset_key(scene, profile)[:24]}"
 
 
-def _resolve(profile: str | ReconstructionProfile) -> ReconstructionProfile:
+def resolve_profile(profile: str | ReconstructionProfile) -> ReconstructionProfile:
+    """The reconstruction profile ``profile`` names in the default configuration, or ``profile`` itself.
+
+    Parameters
+    ----------
+    profile : str or ReconstructionProfile
+        A profile name of ``kdtrace/defaults.toml`` (``quick``, ``standard``, ``paper``), or a profile.
+
+    Returns
+    -------
+    ReconstructionProfile
+    """
     return DEFAULT_CONFIG.reconstruction.profile(profile) if isinstance(profile, str) else profile
 
 
@@ -519,7 +530,7 @@ def generate_dataset(scene: str | Scene, profile: str | ReconstructionProfile = 
     """
     from kdtrace.scenes import load_scene
 
-    profile = _resolve(profile)
+    profile = resolve_profile(profile)
     scene = load_scene(scene) if isinstance(scene, str) else scene
     key = dataset_key(scene, profile)
     root = dataset_dir(scene, profile)
@@ -728,7 +739,7 @@ def superres_data(profile: str | ReconstructionProfile = "quick",
     ValueError
         A crop does not fit an image.
     """
-    profile = _resolve(profile)
+    profile = resolve_profile(profile)
     size, count = profile.superres_crop_size, profile.superres_crops_per_image
     rng = np.random.default_rng([profile.seed, 5])
     augment_rng = np.random.default_rng([profile.seed, 6])

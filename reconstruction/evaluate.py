@@ -36,14 +36,12 @@ import torch
 from torch import nn
 
 from kdtrace.cache import atomic_write_bytes
-from kdtrace.config import DEFAULT_CONFIG, ReconstructionProfile
+from kdtrace.config import ReconstructionProfile
+from kdtrace.markdown import markdown_table
+from reconstruction.data import resolve_profile
 
 #: Columns of the quality table, in order.
 COLUMNS = ("scene", "task", "method", "psnr", "rmse", "psnr_mean", "images", "pixels")
-
-
-def _resolve(profile: str | ReconstructionProfile) -> ReconstructionProfile:
-    return DEFAULT_CONFIG.reconstruction.profile(profile) if isinstance(profile, str) else profile
 
 
 def pooled(predictions: Sequence[np.ndarray], references: Sequence[np.ndarray]) -> dict[str, float]:
@@ -345,10 +343,8 @@ def to_markdown(table: pd.DataFrame) -> str:
             return f"{value:.5f}" if column == "rmse" else f"{value:.3f}"
         return str(value)
 
-    lines = ["| " + " | ".join(table.columns) + " |", "|" + "---|" * len(table.columns)]
-    lines += ["| " + " | ".join(cell(c, v) for c, v in zip(table.columns, row, strict=True)) + " |"
-              for row in table.itertuples(index=False)]
-    return "\n".join(lines) + "\n"
+    return markdown_table(list(table.columns), [[cell(c, v) for c, v in zip(table.columns, row, strict=True)]
+                                                for row in table.itertuples(index=False)])
 
 
 def write_table(table: pd.DataFrame, out_dir: str | Path, stem: str = "quality") -> tuple[Path, Path]:
@@ -391,7 +387,7 @@ def main_quality(scene_names: Sequence[str], profile: str | ReconstructionProfil
     from reconstruction.data import generate_dataset
     from reconstruction.train import train_denoiser, train_superres
 
-    profile = _resolve(profile)
+    profile = resolve_profile(profile)
     scene_names = list(scene_names)
     if not scene_names:
         raise ValueError("no scenes given")

@@ -247,7 +247,7 @@ def z_test(ours: np.ndarray, ours_variance: np.ndarray, reference: np.ndarray, r
 
 # ------------------------------------------------------------------ bias: relMSE against spp
 def relmse_variance_corrected(image: np.ndarray, reference: np.ndarray, reference_variance: np.ndarray | None = None,
-           epsilon: float = RELMSE_EPSILON) -> float:
+                              epsilon: float = RELMSE_EPSILON) -> float:
     """Mean over pixels and channels of ``((a - b)² - var_b) / (b² + ε)``.
 
     Parameters

@@ -33,6 +33,7 @@ from kdtrace.kdtree import VARIANTS, build_kdtree
 from kdtrace.provenance import machine
 from kdtrace.scene import Scene
 from kdtrace.scenes import load_scene
+from references.ztest import loglog_slope
 from reports.metrics import Metric
 
 #: Fractions of the scene's triangles built (nested subsets), smallest first.
@@ -52,11 +53,6 @@ def triangle_subset(scene: Scene, count: int, seed: int = SUBSET_SEED) -> Scene:
     order = np.random.default_rng(seed).permutation(len(scene.triangles))[:count]
     return Scene(f"{scene.name}-subset{count}", scene.vertices, scene.triangles[np.sort(order)],
                  scene.material_ids[np.sort(order)], scene.materials)
-
-
-def loglog_slope(counts, seconds) -> float:
-    """Least-squares slope of log(seconds) against log(counts)."""
-    return float(np.polyfit(np.log(np.asarray(counts, float)), np.log(np.asarray(seconds, float)), 1)[0])
 
 
 def measure(scene: Scene, config: Config, fractions=FRACTIONS, repeats: int = REPEATS) -> dict:

@@ -260,7 +260,7 @@ def table(rows: Sequence[dict]) -> pd.DataFrame:
     return pd.DataFrame(records)
 
 
-def markdown_table(frame: pd.DataFrame) -> str:
+def combined_markdown(frame: pd.DataFrame) -> str:
     """The combined tables: display-referred beside the paper's estimates, then seconds, then linear."""
     def cell(value: float, digits: str) -> str:
         return "" if not math.isfinite(value) else format(value, digits)
@@ -317,7 +317,7 @@ def write_outputs(rows: Sequence[dict], config: Config, profile_name: str, out_d
         "its estimates; the paper measured "
         f"{COMBINED_CBOX_MEASURED['psnr']} dB (RMSE {COMBINED_CBOX_MEASURED['rmse']}) on four Cornell box renderings.\n\n"
         + (f"Warnings during the run: {'; '.join(warned)}\n\n" if warned else "")
-        + markdown_table(frame) + "\n"
+        + combined_markdown(frame) + "\n"
         + ("\n## Figure 8: the pipeline's stages and the tiled-minus-whole denoiser difference\n\n"
            + "".join(f"![{Path(p).stem}](figures/{Path(p).name})\n\n" for p in figures) if figures else "")
     )

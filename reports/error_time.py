@@ -84,6 +84,7 @@ from kdtrace.allocator import freed_memory_retained
 from kdtrace.cache import atomic_write_bytes, content_key
 from kdtrace.config import Config, ProfileConfig, ReconstructionProfile
 from kdtrace.timing import TIMING_REPEATS, shortest
+from reconstruction.metrics import RELMSE_EPSILON
 from reports.error_time_curves import all_measured, plugin_method
 from reports.error_time_present import write_outputs
 from reports.metrics import Metric, write_metrics
@@ -95,8 +96,6 @@ ROW_VERSION = 5
 PLUGIN_ROW_VERSION = 1
 
 
-#: ε of relMSE (as :data:`reconstruction.metrics.RELMSE_EPSILON`).
-RELMSE_EPSILON = 0.01
 
 
 

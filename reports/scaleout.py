@@ -50,6 +50,7 @@ from kdtrace.config import (
     DistributedConfig,
     ReconstructionProfile,
 )
+from kdtrace.markdown import markdown_table
 from kdtrace.provenance import stamp
 from kdtrace.timing import timed
 from reports.metrics import Metric, write_metrics
@@ -239,27 +240,29 @@ def _markdown(result: dict[str, Any], provenance: dict[str, Any]) -> str:
                 f"for bit: {'yes' if throughput['identical'] else 'NO'}. Concurrency: the views' summed seconds "
                 f"over the run's wall seconds (near the worker count when the cluster keeps every worker busy; "
                 f"the throughput ratio falls below it when other jobs take the cores).\n")
-    runs = [f"| {run['workers']} | {run['views_per_second']:.2f} | {run['workers_used']} | "
-            f"{run['concurrency']:.2f} | {run['load_average_before']:.1f} |" for run in throughput["runs"]]
+    runs = markdown_table(["workers", "views/s", "workers used", "concurrency", "load average before"],
+                          [[str(run["workers"]), f"{run['views_per_second']:.2f}", str(run["workers_used"]),
+                            f"{run['concurrency']:.2f}", f"{run['load_average_before']:.1f}"] for run in throughput["runs"]],
+                          right_aligned=[True] * 5)
     projected = (f"## Projected wall time of the `paper` datasets\n\n"
                  f"Scenes: {', '.join(row['scene'] for row in result['calibration'])}; each "
                  f"{target['positions']} x {target['views_per_position']} views at {target['width']}x"
                  f"{target['height']}, {target['spp']} spp input, Mitsuba references at {target['reference_spp']} "
                  f"spp, every view assumed accepted. Per-view single-thread CPU seconds modelled from frames timed at "
                  f"{result['calibration_size']}x{result['calibration_size']} (see `reports/scaleout.py`).\n")
-    per_scene = [f"| {row['scene']} | {row['variant']} | {row['noisy_s']:.2f} | {row['reference_s']:.1f} |"
-                 for row in result["calibration"]]
-    wall = [f"| {row['cores']} | {row['core_hours']:.1f} | {row['ideal_hours']:.2f} | "
-            f"{row['measured_efficiency_hours']:.2f} |" for row in result["projection"]]
+    per_scene = markdown_table(["scene", "Mitsuba variant", "noisy s/view", "reference s/view"],
+                               [[row["scene"], row["variant"], f"{row['noisy_s']:.2f}", f"{row['reference_s']:.1f}"]
+                                for row in result["calibration"]], right_aligned=[False, False, True, True])
+    wall = markdown_table(["cores", "core-hours", "wall hours, ideal",
+                           f"wall hours at the measured 2-worker efficiency ({result['efficiency']:.2f})"],
+                          [[str(row["cores"]), f"{row['core_hours']:.1f}", f"{row['ideal_hours']:.2f}",
+                            f"{row['measured_efficiency_hours']:.2f}"] for row in result["projection"]],
+                          right_aligned=[True] * 4)
     caveat = ("Not modelled: scheduler and network overhead, shared-storage writes, views rejected for low "
               "coverage (which skip their reference), and the difference between the default camera and the "
               "sampled views.")
-    lines = [header, measured, "| workers | views/s | workers used | concurrency | load average before |",
-             "|---:|---:|---:|---:|---:|",
-             *runs, f"\n2 workers / 1 worker throughput: **{result['ratio']:.2f}**\n", projected,
-             "| scene | Mitsuba variant | noisy s/view | reference s/view |", "|---|---|---:|---:|", *per_scene, "",
-             ("| cores | core-hours | wall hours, ideal | wall hours at the measured 2-worker efficiency "
-              f"({result['efficiency']:.2f}) |"), "|---:|---:|---:|---:|", *wall, "", caveat]
+    lines = [header, measured, *runs.splitlines(), f"\n2 workers / 1 worker throughput: **{result['ratio']:.2f}**\n",
+             projected, *per_scene.splitlines(), "", *wall.splitlines(), "", caveat]
     return "\n".join(lines) + "\n"
 
 

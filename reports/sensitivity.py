@@ -131,7 +131,7 @@ def _percent(value: float) -> str:
     return f"{100 * value:.1f}%"
 
 
-def markdown_table(rows: list[dict]) -> str:
+def sensitivity_markdown(rows: list[dict]) -> str:
     """One line per scene and recipe, the paper's claim beside them."""
     lines = []
     for row in rows:
@@ -170,7 +170,7 @@ def write_outputs(rows: list[dict], config: Config, out_dir: Path) -> None:
             "primary frame and incoherent rays, the four trees taking turns in each of its timed rounds; local/naive "
             "is the median of the per-round ratios (> 1: local faster). The paper's local/naive figure is its frame "
             "speed (Table 1 of the paper). Machine: "
-            f"{machine()['cpu']}.\n\n" + markdown_table(rows) + "\n")
+            f"{machine()['cpu']}.\n\n" + sensitivity_markdown(rows) + "\n")
     atomic_write_bytes(out_dir / "table1_sensitivity.md", text.encode())
     atomic_write_bytes(out_dir / "table1_sensitivity.csv", pd.DataFrame(rows).to_csv(index=False).encode())
 

@@ -512,7 +512,7 @@ def generate(config: Config, profile_name: str, out_dir: Path, fresh: bool = Fal
     write_outputs(table, config, profile_name, out_dir, extra, build_scaling_scene=scaling_scene,
                   sensitivity=bool(sensitivity_rows))
     if progress:
-        print(markdown_table(table))
+        print(table1_markdown(table))
         if extra:
             print(plugin_markdown(extra))
     metrics = table_metrics(rows) + plugin_metrics(extra) + scaling + sensitivity.metrics_of(sensitivity_rows)
@@ -556,7 +556,7 @@ def _work(row: dict, kind: str) -> str:
     return "" if nodes is None or tests is None else f"{nodes:.1f} / {tests:.1f}"
 
 
-def markdown_table(table: pd.DataFrame) -> str:
+def table1_markdown(table: pd.DataFrame) -> str:
     """Table 1 as Markdown: ours beside the paper's, with ratios."""
     lines = []
     for row in table.to_dict("records"):
@@ -625,7 +625,7 @@ def write_outputs(table: pd.DataFrame, config: Config, profile_name: str, out_di
         f"{profile.seed}. Provenance: provenance.json.\n\n"
     )
     out_dir.mkdir(parents=True, exist_ok=True)
-    text = header + markdown_table(table) + "\n"
+    text = header + table1_markdown(table) + "\n"
     if build_scaling_scene:
         text += (f"\nBuild seconds against triangle count, with the fitted slope ({build_scaling_scene}): "
                  "[table1_build.md](table1_build.md).\n")

@@ -59,6 +59,7 @@ from typing import Any
 import numpy as np
 
 from kdtrace.cache import atomic_write_bytes
+from kdtrace.markdown import markdown_table
 from reports import paper_figures
 from reports.figures import LIT_FRACTION, STRIP_FOLDER, STRIP_MANIFEST, auto_crop, safe_stem
 
@@ -838,13 +839,6 @@ def md_text(text: Any) -> str:
     return escaped.replace("|", "\\|").replace("[", "\\[").replace("]", "\\]").replace("\n", " ")
 
 
-def md_table(headers: Sequence[str], rows: Sequence[Sequence[str]]) -> str:
-    """A GitHub Markdown table of already escaped cells."""
-    lines = ["| " + " | ".join(headers) + " |", "|" + "---|" * len(headers)]
-    lines += ["| " + " | ".join(row) + " |" for row in rows]
-    return "\n".join(lines) + "\n"
-
-
 def _strip_intro(strip: Strip) -> str:
     exposure = f"exposure {strip.exposure:.4g}" if strip.exposure else "no exposure"
     return (f"View `{md_text(strip.view)}` ({md_text(strip.split)}); {exposure}. "
@@ -864,7 +858,7 @@ def render_markdown(profile: str, findings, changed: list[str], strips: list[Str
         verdict = verdict_text(finding)
         rows.append([md_text(claim.text), md_text(claim.paper), md_text(finding.ours if finding else "—"),
                      f"**{md_text(verdict)}** ([{claim.evidence}]({claim.evidence}))"])
-    lines.append(md_table(["claim (paper)", "paper", "ours", "verdict (evidence)"], rows))
+    lines.append(markdown_table(["claim (paper)", "paper", "ours", "verdict (evidence)"], rows))
     lines.append("How each verdict is decided (per image space where a claim has both; scenes are the run's):\n")
     lines += [f"{number}. {md_text(claim.rule)}." for number, (claim, _) in enumerate(findings, 1)]
     lines.append("")
@@ -890,7 +884,7 @@ def render_markdown(profile: str, findings, changed: list[str], strips: list[Str
         lines.append(_strip_intro(strip) + "\n")
         lines.append(f"![{md_text(strip.scene)} strip]({strip_files[strip.scene]})\n")
         psnr_cells, flip_cells = _metric_cells(strip)
-        lines.append(md_table(["", *(md_text(item.label) for item in strip.images)],
+        lines.append(markdown_table(["", *(md_text(item.label) for item in strip.images)],
                               [["display PSNR (dB, this view)", *psnr_cells], ["FLIP (display, ↓)", *flip_cells],
                                ["linear EXR", *(f"[{item.key}.exr]({item.file})" if item.image is not None else "missing"
                                                 for item in strip.images)]]))
@@ -901,7 +895,7 @@ def render_markdown(profile: str, findings, changed: list[str], strips: list[Str
         if rows is None:
             lines.append(f"> **Missing:** `{spec.stem}.csv` is not in this folder or lacks a column of this table.\n")
             continue
-        lines.append(md_table([md_text(c.header) for c in spec.columns], [[md_text(c) for c in row] for row in rows]))
+        lines.append(markdown_table([md_text(c.header) for c in spec.columns], [[md_text(c) for c in row] for row in rows]))
         lines.append(f"Every column: [{spec.stem}.csv]({spec.stem}.csv), with the notes in [{spec.stem}.md]({spec.stem}.md).\n")
     return "\n".join(lines) + "\n"
 

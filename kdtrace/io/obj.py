@@ -244,7 +244,7 @@ def _convert_faces(found: _Lines, path: Path) -> tuple[np.ndarray, np.ndarray, n
     return raw, counts, forms
 
 
-def _resolve(
+def _zero_based_indices(
     raw: np.ndarray, defined_so_far: np.ndarray, total: int, present: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
     """0-based indices from OBJ indices (1-based, or negative = relative).
@@ -281,7 +281,7 @@ def _drop_invalid_attributes(
     ----------
     attributes : dict
         ``{"texture coordinate": (indices, bad, total), "normal": ...}`` from
-        :func:`_resolve`, in the column order of ``raw`` (1, 2).
+        :func:`_zero_based_indices`, in the column order of ``raw`` (1, 2).
     raw, defined : (C, 3) int arrays
         OBJ indices of each corner and the element counts read before its face.
     corner_face : (C,) int array
@@ -427,7 +427,7 @@ def parse_obj(data: bytes, path: Path, log: WarningLog | None = None) -> Scene:
     corner_line = face_line[corner_face]
     defined = np.asarray(found.face_defined, dtype=np.int64)[corner_face]
     corner_form = forms[corner_face]
-    v, bad_v = _resolve(raw[:, 0], defined[:, 0], len(positions), np.ones(len(raw), bool))
+    v, bad_v = _zero_based_indices(raw[:, 0], defined[:, 0], len(positions), np.ones(len(raw), bool))
     if bad_v.any():
         corner = int(np.flatnonzero(bad_v)[0])
         problem = _index_problem(int(raw[corner, 0]), int(defined[corner, 0]), len(positions), "vertex")
@@ -435,8 +435,8 @@ def parse_obj(data: bytes, path: Path, log: WarningLog | None = None) -> Scene:
     has_vt = (corner_form == _FORM_V_VT) | (corner_form == _FORM_V_VT_VN)
     has_vn = (corner_form == _FORM_V_VN) | (corner_form == _FORM_V_VT_VN)
     attributes = {
-        "texture coordinate": (*_resolve(raw[:, 1], defined[:, 1], len(texcoords), has_vt), len(texcoords)),
-        "normal": (*_resolve(raw[:, 2], defined[:, 2], len(normals), has_vn), len(normals)),
+        "texture coordinate": (*_zero_based_indices(raw[:, 1], defined[:, 1], len(texcoords), has_vt), len(texcoords)),
+        "normal": (*_zero_based_indices(raw[:, 2], defined[:, 2], len(normals), has_vn), len(normals)),
     }
     kept = _drop_invalid_attributes(attributes, raw, defined, corner_face, face_line, path, log)
     vt, vn = kept["texture coordinate"], kept["normal"]
