@@ -52,6 +52,7 @@ import json
 import math
 import re
 from collections.abc import Iterable
+from importlib import resources
 from pathlib import Path
 
 from tabulate import tabulate
@@ -61,8 +62,9 @@ from kdtrace.config import GateConfig
 from kdtrace.provenance import cpu_kind
 from reports.metrics import Metric, read_metrics
 
-#: Where the committed baselines live, one ``PROFILE.json`` each.
-BASELINE_DIR = Path(__file__).resolve().with_name("baseline")
+#: Where the committed baselines live, one ``PROFILE.json`` each: the package data ``reports/baseline``
+#: (declared in pyproject.toml, so an installed wheel has them too); ``--baselines DIR`` overrides it.
+BASELINE_DIR = Path(resources.files("reports") / "baseline")
 #: Verdicts, in the order the table lists them.
 FAIL, MISSING, NEW, NOT_GATED, OK = ("FAIL", "FAIL: missing from run", "new (not in baseline)",
                                      "not gated", "ok")
