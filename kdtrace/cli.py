@@ -229,7 +229,7 @@ def _report(args, config) -> int:
 
 
 def _verdict(args, config) -> int:
-    from reports.verdict import link_from_index, write_verdict
+    from reports.verdict_page import link_from_index, write_verdict
 
     out_dir = Path(args.results) if args.results else results_dir(args.profile)
     written = write_verdict(out_dir, args.profile if not args.results else None)

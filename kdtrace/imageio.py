@@ -1,4 +1,5 @@
-"""Image files: OpenEXR for linear float data, PNG (sRGB, clamped) for viewing.
+"""Image files: OpenEXR for linear float data, PNG (sRGB, clamped) for viewing, RGBE planes for
+linear data inside a PNG (the verdict page's interactive comparison).
 
 EXR goes through ``mitsuba.Bitmap`` (Mitsuba is a dependency; no OpenEXR or imageio
 plugin is needed), PNG through Pillow. Every write is atomic: the file appears under
@@ -7,6 +8,7 @@ its name only when complete (temporary file in the same folder, then ``os.replac
 
 from __future__ import annotations
 
+import io
 from pathlib import Path
 
 import numpy as np
@@ -147,3 +149,52 @@ def write_render(result, directory: str | Path, stem: str = "render") -> dict[st
         if buffer is not None:
             written[name] = write_exr(directory / f"{stem}-{name}.exr", buffer)
     return written
+
+
+def rgbe_encode(image: np.ndarray) -> np.ndarray:
+    """Radiance RGBE of a linear (H, W, 3) image as an opaque RGB array of twice its height, uint8 (2H, W, 3).
+
+    Per pixel, with ``v`` its largest channel written ``m · 2**e`` (``m`` in [0.5, 1)): the
+    mantissas ``floor(channel · 256 · m / v)`` in rows ``[0, H)``, and the exponent ``e + 128``
+    in the red channel of rows ``[H, 2H)`` (green and blue 0). Negative values and NaN become
+    0, +inf and values over 2**126 saturate, a pixel whose largest channel is below 2**-127
+    is black (exponent 0).
+    """
+    linear = np.nan_to_num(np.asarray(image, dtype=np.float64), nan=0.0, posinf=2.0**126)
+    if linear.ndim != 3 or linear.shape[2] != 3:
+        raise ValueError(f"expected an (H, W, 3) image, got {linear.shape}")
+    linear = np.clip(linear, 0.0, 2.0**126)
+    largest = linear.max(axis=2)
+    mantissa, exponent = np.frexp(largest)
+    lit = largest >= 2.0**-127
+    scale = np.where(lit, mantissa * 256.0 / np.where(lit, largest, 1.0), 0.0)
+    height, width = largest.shape
+    planes = np.zeros((2 * height, width, 3), dtype=np.uint8)
+    planes[:height] = np.clip(np.floor(linear * scale[:, :, None]), 0, 255).astype(np.uint8)
+    planes[height:, :, 0] = np.where(lit, exponent + 128, 0).astype(np.uint8)
+    return planes
+
+
+def rgbe_decode(planes: np.ndarray) -> np.ndarray:
+    """The linear (H, W, 3) float32 image of :func:`rgbe_encode`'s planes.
+
+    Each channel is ``(mantissa + 0.5) · 2**(exponent − 136)``, 0 where the exponent is 0.
+
+    The error of each channel is at most 1/256 of the pixel's largest channel (plus the
+    saturation and clipping of :func:`rgbe_encode`); the verdict page's script
+    (:mod:`reports.verdict_page`) decodes the same way.
+    """
+    planes = np.asarray(planes)
+    height = planes.shape[0] // 2
+    exponent = planes[height:, :, 0].astype(np.int32)
+    factor = np.where(exponent > 0, np.ldexp(1.0, exponent - 136), 0.0)
+    return ((planes[:height].astype(np.float64) + 0.5) * factor[:, :, None]).astype(np.float32)
+
+
+def png_bytes(array: np.ndarray) -> bytes:
+    """An 8-bit (H, W) or (H, W, 3) array as the bytes of a PNG file (Pillow, ``optimize=True``)."""
+    from PIL import Image
+
+    buffer = io.BytesIO()
+    Image.fromarray(array).save(buffer, format="PNG", optimize=True)
+    return buffer.getvalue()

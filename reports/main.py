@@ -20,7 +20,7 @@ starts, and all of them are looked up before any work, so a missing one is a cle
 error at once. ``--scenes`` restricts the profile's ``scenes`` (and its
 ``reconstruction_scenes`` to those among them) for every part.
 
-Afterwards the verdict page (:mod:`reports.verdict`: ``verdict.md`` and ``verdict.html``, the
+Afterwards the verdict page (:mod:`reports.verdict_page`: ``verdict.md`` and ``verdict.html``, the
 paper's claims judged on whatever the folder holds) is written, and ``out_dir/README.md``
 links it first, then every file each part wrote, with the notes the
 parts raised (:class:`reports.notes.ReportNote`: reused caches, a missing backend such as
@@ -188,7 +188,7 @@ def _link(name: str) -> str:
 
 
 def _index(parts: list[PartRun], profile_name: str, provenance: dict, gate_line: str, others: list[str]) -> str:
-    from reports.verdict import INDEX_LINE
+    from reports.verdict_page import INDEX_LINE
 
     host, versions = provenance["machine"], provenance["versions"]
     lines = [f"# kdtrace report: {profile_name} profile\n", INDEX_LINE,
@@ -247,7 +247,7 @@ def run_report(config: Config, profile_name: str, out_dir: str | Path, scenes: l
     """
     from reports import gate as gate_module
     from reports.gate import absolute_failures
-    from reports.verdict import write_verdict
+    from reports.verdict_page import write_verdict
 
     profile = config.profile(profile_name)
     config = restrict_scenes(config, profile_name, scenes)

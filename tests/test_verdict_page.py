@@ -1,4 +1,5 @@
-"""The verdict page (reports/verdict.py): the writer on small synthetic inputs, and the HTML page in headless Chromium.
+"""The verdict page (judged in reports/verdict.py, written by reports/verdict_page.py): the writer on small synthetic inputs,
+and the HTML page in headless Chromium.
 
 The browser test drives Chromium over the Chrome DevTools Protocol on a pipe
 (``--remote-debugging-pipe``: NUL-separated JSON on file descriptors 3 and 4, no port and
@@ -25,7 +26,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from reports import verdict
+from kdtrace.imageio import png_bytes, rgbe_decode, rgbe_encode
+from reports import verdict, verdict_page
 from reports.figures import lit_fraction, safe_stem, strip_view
 from reports.verdict import Strip, StripImage
 
@@ -52,7 +54,7 @@ def synthetic_strip(scene: str = "cbox", label: str = "ours", height: int = 24, 
 
 def write_synthetic_page(out_dir: Path, strips: list[Strip], problems: list[str] = ()) -> dict[str, Path]:
     tables = verdict.RunTables(out_dir)
-    return verdict.write_page(out_dir, "synthetic", verdict.judge(tables), strips, list(problems),
+    return verdict_page.write_page(out_dir, "synthetic", verdict.judge(tables), strips, list(problems),
                               verdict.compact_tables(tables))
 
 
@@ -63,9 +65,9 @@ def test_rgbe_round_trip_within_its_precision():
     image[0, 0] = 0.0
     image[0, 1] = [1.0, 0.0, 1e-9]
     image[1, 0] = [-1.0, np.nan, 2.0]  # negative and NaN are 0
-    planes = verdict.rgbe_encode(image)
+    planes = rgbe_encode(image)
     assert planes.shape == (34, 13, 3) and planes.dtype == np.uint8
-    decoded = verdict.rgbe_decode(planes)
+    decoded = rgbe_decode(planes)
     expected = np.clip(np.nan_to_num(image, nan=0.0), 0.0, None)
     bound = expected.max(axis=2, keepdims=True) / 256  # RGBE: 8 bits of mantissa per channel, shared exponent
     assert np.all(np.abs(decoded - expected) <= bound * (1 + 1e-6))
@@ -74,7 +76,7 @@ def test_rgbe_round_trip_within_its_precision():
     # through PNG bytes and back, as the page embeds it
     from PIL import Image
 
-    again = np.asarray(Image.open(io.BytesIO(verdict._png_bytes(planes))))
+    again = np.asarray(Image.open(io.BytesIO(png_bytes(planes))))
     assert np.array_equal(again, planes)
 
 
@@ -111,7 +113,7 @@ def test_missing_images_are_stated_not_drawn(tmp_path):
                                                    "images": entries}))
     (tmp_path / "verdict" / "broken").mkdir()
     (tmp_path / "verdict" / "broken" / "strip.json").write_text("{not json")
-    written = verdict.write_verdict(tmp_path, "synthetic")
+    written = verdict_page.write_verdict(tmp_path, "synthetic")
     page, markdown = written["html"].read_text(), written["markdown"].read_text()
     for text in (page, markdown):
         assert "verdict/cbox/ours.exr is missing" in text
@@ -122,14 +124,14 @@ def test_missing_images_are_stated_not_drawn(tmp_path):
     assert [image["key"] for image in viewer[0]["images"]] == ["noisy", "oidn", "reference"]
 
     (folder / "reference.exr").unlink()  # no reference: no strip at all, said so
-    page = verdict.write_verdict(tmp_path, "synthetic")["html"].read_text()
+    page = verdict_page.write_verdict(tmp_path, "synthetic")["html"].read_text()
     assert "the reference image is missing" in page and "no linear images to compare" in page
 
     empty = tmp_path / "empty"
     empty.mkdir()
-    assert "no strip images in" in verdict.write_verdict(empty)["markdown"].read_text()
+    assert "no strip images in" in verdict_page.write_verdict(empty)["markdown"].read_text()
     with pytest.raises(FileNotFoundError):
-        verdict.write_verdict(tmp_path / "absent")
+        verdict_page.write_verdict(tmp_path / "absent")
 
 
 def test_claims_judged_in_both_spaces_and_changes_listed(tmp_path):
@@ -280,7 +282,7 @@ def test_page_in_headless_chromium(tmp_path):
 
         # the page decodes the embedded RGBE exactly as numpy does
         decoded = np.asarray(evaluate("window.kdtraceVerdict.viewers[0].linear('reference')"), dtype=np.float32)
-        expected = verdict.rgbe_decode(verdict.rgbe_encode(strip.reference.image)).reshape(-1)
+        expected = rgbe_decode(rgbe_encode(strip.reference.image)).reshape(-1)
         np.testing.assert_allclose(decoded, expected, rtol=1e-6)
 
         canvas = "document.querySelector('section.viewer canvas.method').toDataURL()"
@@ -318,8 +320,8 @@ def test_page_in_headless_chromium(tmp_path):
 
 
 def test_index_links_the_verdict_first_once(tmp_path):
-    assert not verdict.link_from_index(tmp_path)  # no index: nothing to link from
+    assert not verdict_page.link_from_index(tmp_path)  # no index: nothing to link from
     (tmp_path / "README.md").write_text("# kdtrace report: quick profile\n\nrest\n")
-    assert verdict.link_from_index(tmp_path) and verdict.link_from_index(tmp_path)
+    assert verdict_page.link_from_index(tmp_path) and verdict_page.link_from_index(tmp_path)
     index = (tmp_path / "README.md").read_text()
     assert index.count("](verdict.md)") == 1 and index.index("verdict.md") < index.index("rest")
