@@ -16,7 +16,7 @@ the RMSE of the denoising and superresolution RMSE's ... and solving for PSNR"):
 * bicubic upsampling instead of the net, for scale.
 
 Seconds per stage are warm and the shortest of
-:data:`reports.timing.TIMING_REPEATS` runs (the render: the kernel's wall time; each
+:data:`kdtrace.timing.TIMING_REPEATS` runs (the render: the kernel's wall time; each
 network: after a warm-up call on the same input). The paper's estimated PSNR and its
 one-core total seconds (512x512 render from Table 1 + Table 6 network times) are printed
 beside ours where our scene stands in for one of the paper's.

@@ -16,7 +16,7 @@ each scene of the profile's ``sensitivity_scenes`` is built twice over:
 
 For each recipe the naive and local-branch trees' references, bytes and speed on the
 Table 1 ray sets (one primary frame, the incoherent rays) are measured, the four trees
-taking turns in every timed round (:func:`reports.timing.interleaved_seconds`); local/naive
+taking turns in every timed round (:func:`kdtrace.timing.interleaved_seconds`); local/naive
 is the median of the per-round ratios. Frames are not path traced here (Table 1 does that
 for ``ours``).
 
