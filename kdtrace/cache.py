@@ -1,9 +1,17 @@
-"""Content-addressed on-disk cache with atomic writes.
+"""Content-addressed on-disk cache with atomic writes and claims.
 
-Artefacts (KD-trees now; references and models later) are stored as ``.npz`` files
-named by a SHA-256 key of everything they depend on. Writes go to a temporary file in
-the same directory and are renamed into place, so an interrupted run never leaves a
+Artefacts (meshes, KD-trees, dataset views, references, networks) are stored under names
+made of a SHA-256 key of everything they depend on. Writes go to a temporary file in the
+same directory and are renamed into place, so an interrupted run never leaves a
 half-written artefact behind.
+
+Several processes may share one cache (a report while a benchmark runs, Dask workers,
+two users): :func:`compute_once` makes the first one to miss an artefact **claim** it
+(an exclusive ``fcntl`` lock on a file in ``.locks/`` of the cache, through the ``filelock`` package) while
+the others wait and then load what it wrote. The operating system drops the lock of a
+process that dies, so a killed holder never blocks anyone; a holder that hangs is given
+up on after ``[cache] claim_timeout_seconds`` and the waiter computes the artefact itself
+with a warning (both write atomically, so nothing is lost, the work is only done twice).
 """
 
 from __future__ import annotations
@@ -12,12 +20,15 @@ import hashlib
 import json
 import os
 import tempfile
-from collections.abc import Callable
+import warnings
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from types import ModuleType
 from typing import Any
 
 import numpy as np
+from filelock import FileLock, Timeout
 
 from kdtrace.config import DEFAULT_CONFIG
 
@@ -25,6 +36,86 @@ from kdtrace.config import DEFAULT_CONFIG
 def cache_root() -> Path:
     """The cache directory: ``$KDTRACE_CACHE`` or the configured default."""
     return Path(os.environ.get("KDTRACE_CACHE", DEFAULT_CONFIG.cache.directory))
+
+
+class ClaimWarning(UserWarning):
+    """Another process held an artefact's claim past the timeout; it is computed here as well."""
+
+
+def claim_lock_path(path: str | Path) -> Path:
+    """The lock file of the artefact at ``path``: ``cache_root()/.locks/<hash of its absolute path>.lock``.
+
+    Kept apart from the artefacts, so that their folders hold only artefacts (lock files are
+    never deleted: unlinking a lock another process is waiting on would let a third take a new one).
+    """
+    return cache_root() / ".locks" / f"{hashlib.sha256(str(Path(path).absolute()).encode()).hexdigest()[:32]}.lock"
+
+
+@contextmanager
+def claim(path: str | Path, timeout: float | None = None) -> Iterator[bool]:
+    """Hold the exclusive claim on the artefact at ``path`` for the duration of the block.
+
+    Parameters
+    ----------
+    path : str or Path
+        The artefact (file or folder); its lock file is :func:`claim_lock_path`.
+    timeout : float, optional
+        Seconds to wait for another holder (default ``[cache] claim_timeout_seconds``).
+
+    Yields
+    ------
+    bool
+        True when the claim is held; False when the wait timed out (a :class:`ClaimWarning`
+        names the lock) or the lock file cannot be made (a read-only or full cache), and the
+        block runs without it.
+    """
+    path = Path(path).absolute()
+    timeout = DEFAULT_CONFIG.cache.claim_timeout_seconds if timeout is None else timeout
+    lock_path = claim_lock_path(path)
+    lock = FileLock(lock_path, timeout=timeout)
+    try:
+        lock_path.parent.mkdir(parents=True, exist_ok=True)
+        lock.acquire()
+    except Timeout:  # before OSError, of which it is a subclass
+        warnings.warn(f"{path}: another process has been computing it for over {timeout:g} s "
+                      f"(lock {lock_path}); computing it here as well", ClaimWarning, stacklevel=3)
+        yield False
+        return
+    except OSError:  # a read-only or full cache: nothing can be shared; the artefact's own write says why
+        yield False
+        return
+    try:
+        yield True
+    finally:
+        lock.release()
+
+
+def compute_once(path: str | Path, load: Callable[[], Any], compute: Callable[[], Any],
+                 timeout: float | None = None) -> Any:
+    """``load()`` the artefact at ``path``, or ``compute()`` it under its claim.
+
+    Parameters
+    ----------
+    path : str or Path
+        Where ``compute`` writes the artefact (atomically).
+    load : callable
+        Returns the artefact, or None when it is missing or unreadable.
+    compute : callable
+        Makes, writes and returns it.
+    timeout : float, optional
+        See :func:`claim`.
+
+    Returns
+    -------
+    What ``load`` or ``compute`` returned: with several processes on one cache, one computes
+    and the others load its result once it is written.
+    """
+    found = load()
+    if found is not None:
+        return found
+    with claim(path, timeout):
+        found = load()  # another process may have written it while this one waited
+        return found if found is not None else compute()
 
 
 def content_key(*parts: Any) -> str:

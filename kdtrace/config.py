@@ -92,9 +92,23 @@ class KDTreeConfig:
 
 @dataclass(frozen=True)
 class CacheConfig:
-    """On-disk cache of content-hashed artefacts (trees, references, models)."""
+    """On-disk cache of content-hashed artefacts (trees, references, models).
+
+    Attributes
+    ----------
+    directory : str
+        The cache folder (``KDTRACE_CACHE`` overrides).
+    claim_timeout_seconds : float
+        How long a process waits for another one computing the same artefact before computing
+        it too (:func:`kdtrace.cache.claim`); longer than the longest training.
+    """
 
     directory: str = ".cache/kdtrace"
+    claim_timeout_seconds: float = 14400.0
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.claim_timeout_seconds) and self.claim_timeout_seconds > 0):
+            raise ValueError("cache.claim_timeout_seconds must be a positive number of seconds")
 
 
 @dataclass(frozen=True)

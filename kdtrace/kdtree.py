@@ -25,7 +25,7 @@ from kdtrace import _kdtree_layout as layout_kernels
 from kdtrace import _kdtree_traverse as traverse_kernels
 from kdtrace import _packet_traverse as packet_kernels
 from kdtrace import _ray_order as ray_order
-from kdtrace.cache import cache_root, content_key, load_npz, save_npz
+from kdtrace.cache import cache_root, compute_once, content_key, load_npz, save_npz
 from kdtrace.config import DEFAULT_CONFIG, KDTreeConfig
 from kdtrace.scene import Scene
 
@@ -439,14 +439,19 @@ def build_kdtree(
     traversal = [getattr(config, name) for name in TRAVERSAL_CHOICES]
     key = content_key("kdtree", BUILDER_VERSION, variant, scene.geometry_hash(), build_parameters)
     path = cache_root() / "kdtrees" / f"{scene.name}-{variant}-{key[:20]}.npz"
-    if cache:
+
+    def stored() -> KDTree | None:
         loaded = load_npz(path)
-        if loaded is not None and set(_TREE_ARRAYS) <= set(loaded[0]):
-            arrays, stats = loaded
-            stats = dict(stats, cache_hit=True)
-            return KDTree(scene, variant, arrays, stats, *traversal)
-    arrays, stats = _build_arrays(scene, variant, config)
-    stats["cache_hit"] = False
-    if cache:
-        save_npz(path, arrays, stats)
-    return KDTree(scene, variant, arrays, stats, *traversal)
+        if loaded is None or not set(_TREE_ARRAYS) <= set(loaded[0]):
+            return None
+        arrays, stats = loaded
+        return KDTree(scene, variant, arrays, dict(stats, cache_hit=True), *traversal)
+
+    def build() -> KDTree:
+        arrays, stats = _build_arrays(scene, variant, config)
+        stats["cache_hit"] = False
+        if cache:
+            save_npz(path, arrays, stats)
+        return KDTree(scene, variant, arrays, stats, *traversal)
+
+    return compute_once(path, stored, build) if cache else build()

@@ -65,6 +65,7 @@ from tqdm import tqdm
 from kdtrace.cache import (
     atomic_write_bytes,
     cache_root,
+    compute_once,
     content_key,
     load_npz,
     save_npz,
@@ -369,12 +370,21 @@ def make_view(scene: Scene, profile: ReconstructionProfile, index: int, root: st
         The view's record: name, camera, seeds, coverage, accepted, render seconds, and
         ``worker`` / ``unit_seconds`` (who made the file and its wall time, seconds).
     """
+    path = Path(root) / f"view-{index:04d}.npz"
+
+    def stored() -> dict[str, Any] | None:
+        metadata = _view_metadata(path)
+        return metadata if metadata is not None and metadata.get("key") == key else None
+
+    # claimed: two processes generating one dataset share its views instead of rendering each twice
+    return compute_once(path, stored, lambda: _render_and_save_view(scene, profile, index, path, key, variant))
+
+
+def _render_and_save_view(scene: Scene, profile: ReconstructionProfile, index: int, path: Path, key: str,
+                          variant: str | None) -> dict[str, Any]:
+    """Render candidate view ``index`` and write it atomically to ``path``; its record (see :func:`make_view`)."""
     from kdtrace.distributed import worker_identity
 
-    path = Path(root) / f"view-{index:04d}.npz"
-    metadata = _view_metadata(path)
-    if metadata is not None and metadata.get("key") == key:
-        return metadata
     view = candidate_views(scene, profile)[index]
     started = time.perf_counter()
     arrays, metadata = _render_view(scene, view, profile, variant)

@@ -50,9 +50,10 @@ import torch
 from torch import nn
 from tqdm import tqdm
 
-from kdtrace.cache import atomic_write, atomic_write_bytes, cache_root, content_key
-from kdtrace.config import DECAYS, DEFAULT_CONFIG, ReconstructionProfile
+from kdtrace.cache import atomic_write, atomic_write_bytes, cache_root, claim, content_key
+from kdtrace.config import DECAYS, ReconstructionProfile
 from kdtrace.provenance import stamp
+from reconstruction.data import resolve_profile
 
 #: The checkout holding ``kdtrace``, ``reconstruction`` and the committed ``models``.
 REPOSITORY = Path(__file__).resolve().parents[1]
@@ -435,10 +436,6 @@ def fit(model: nn.Module, loss_fn: nn.Module, data: dict[str, tuple[torch.Tensor
 
 
 # ------------------------------------------------------------------ entry points
-def _resolve(profile: str | ReconstructionProfile) -> ReconstructionProfile:
-    return DEFAULT_CONFIG.reconstruction.profile(profile) if isinstance(profile, str) else profile
-
-
 def _training_dir(kind: str, model: nn.Module, loss_fn: nn.Module, data_hash: str,
                   profile: ReconstructionProfile, learning_rate: float, warmup_steps: int = 0,
                   decay: str = "constant") -> Path:
@@ -582,7 +579,7 @@ def denoiser_data(scene_names: list[str] | tuple[str, ...], profile: str | Recon
     data_hash : str
         Content key of the dataset keys and crop settings.
     """
-    profile = _resolve(profile)
+    profile = resolve_profile(profile)
     datasets = _datasets(scene_names, profile, progress)
     keys = {name: dataset.key for name, dataset in datasets.items()}
     return _denoiser_crops(datasets, profile, auxiliary, encode), _denoiser_data_hash(keys, profile, auxiliary)
@@ -638,7 +635,7 @@ def train_denoiser(scene_names: list[str] | tuple[str, ...], profile: str | Reco
     """
     from reconstruction.hdr import decode
 
-    profile = _resolve(profile).denoiser
+    profile = resolve_profile(profile).denoiser
     data_hash = _denoiser_data_hash(_dataset_keys(scene_names, profile), profile, auxiliary)
     if model is None:
         from reconstruction.models import Denoiser
@@ -658,21 +655,22 @@ def train_denoiser(scene_names: list[str] | tuple[str, ...], profile: str | Reco
     if directory is None:
         directory = _training_dir("denoiser", model, loss_fn, data_hash, profile, **schedule)
     directory = Path(directory)
-    published = _published_result(model, directory, profile, data_hash)
-    if published is not None:
-        return published  # no dataset is generated and no crop drawn: the mixed model's take about 10 GB
-    datasets = _datasets(scene_names, profile, progress)
-    data = _denoiser_crops(datasets, profile, auxiliary)
-    if getattr(model, "perceptual", 0):
-        model.calibrate(data["train"][1])
-    precision = resolve_precision(profile.precision)[0]
-    result = fit(model, loss_fn, data, directory, data_hash, profile.epochs, profile.batch_size,
-                 profile.denoiser_rate, profile.seed, decode, psnr, progress, precision, profile.patience,
-                 warmup_steps, profile.denoiser_decay)
-    _write_result(result, evaluate(result.model, data["test"], loss_fn, decode, psnr), list(scene_names), profile,
-                  **schedule)
-    _publish(result, profile)
-    return result
+    with claim(directory):  # a second process on this cache waits for this training instead of running it too
+        published = _published_result(model, directory, profile, data_hash)
+        if published is not None:
+            return published  # no dataset is generated and no crop drawn: the mixed model's take about 10 GB
+        datasets = _datasets(scene_names, profile, progress)
+        data = _denoiser_crops(datasets, profile, auxiliary)
+        if getattr(model, "perceptual", 0):
+            model.calibrate(data["train"][1])
+        precision = resolve_precision(profile.precision)[0]
+        result = fit(model, loss_fn, data, directory, data_hash, profile.epochs, profile.batch_size,
+                     profile.denoiser_rate, profile.seed, decode, psnr, progress, precision, profile.patience,
+                     warmup_steps, profile.denoiser_decay)
+        _write_result(result, evaluate(result.model, data["test"], loss_fn, decode, psnr), list(scene_names),
+                      profile, **schedule)
+        _publish(result, profile)
+        return result
 
 
 def superres_tensors(pairs: dict[str, np.ndarray]) -> tuple[torch.Tensor, torch.Tensor]:
@@ -715,7 +713,7 @@ def train_superres(profile: str | ReconstructionProfile = "quick", scene_names: 
     """
     from reconstruction.data import AUGMENT_EXPOSURE, AUGMENT_FACTOR, generate_dataset, superres_data
 
-    profile = _resolve(profile)
+    profile = resolve_profile(profile)
     keys = list(_dataset_keys(scene_names, profile).values()) if scene_names else []
     data_hash = content_key("superres-data", keys, profile.superres_crop_size,
                             profile.superres_crops_per_image, profile.superres_downsample, profile.seed,
@@ -731,20 +729,21 @@ def train_superres(profile: str | ReconstructionProfile = "quick", scene_names: 
         loss_fn = EdgeAwareLoss(SUPERRESOLUTION_SIGMA)
     directory = (_training_dir("superres", model, loss_fn, data_hash, profile, profile.learning_rate)
                  if directory is None else Path(directory))
-    published = _published_result(model, directory, profile, data_hash)
-    if published is not None:
-        return published
-    datasets = [generate_dataset(name, profile, progress) for name in scene_names]
-    data = {split: superres_tensors(value) for split, value in superres_data(profile, datasets).items()}
-    precision = resolve_precision(profile.precision)[0]
-    result = fit(model, loss_fn, data, directory, data_hash, profile.epochs, profile.batch_size,
-                 profile.learning_rate, profile.seed, _identity, psnr, progress, precision, profile.patience)
-    if "test" in data:
-        metrics = evaluate(result.model, data["test"], loss_fn, _identity, psnr)
-        metrics["bicubic"] = evaluate(nn.Identity(), data["test"], loss_fn, _identity, psnr)
-        _write_result(result, metrics, list(scene_names), profile, profile.learning_rate)
-        _publish(result, profile)  # result.json marks a finished copy: without a test split nothing is stored
-    return result
+    with claim(directory):  # as train_denoiser's
+        published = _published_result(model, directory, profile, data_hash)
+        if published is not None:
+            return published
+        datasets = [generate_dataset(name, profile, progress) for name in scene_names]
+        data = {split: superres_tensors(value) for split, value in superres_data(profile, datasets).items()}
+        precision = resolve_precision(profile.precision)[0]
+        result = fit(model, loss_fn, data, directory, data_hash, profile.epochs, profile.batch_size,
+                     profile.learning_rate, profile.seed, _identity, psnr, progress, precision, profile.patience)
+        if "test" in data:
+            metrics = evaluate(result.model, data["test"], loss_fn, _identity, psnr)
+            metrics["bicubic"] = evaluate(nn.Identity(), data["test"], loss_fn, _identity, psnr)
+            _write_result(result, metrics, list(scene_names), profile, profile.learning_rate)
+            _publish(result, profile)  # result.json marks a finished copy: without a test split nothing is stored
+        return result
 
 
 def _write_result(result: TrainResult, test: dict[str, Any], scenes: list[str], profile: ReconstructionProfile,

@@ -57,7 +57,7 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from kdtrace.cache import cache_root, content_key, load_npz, save_npz
+from kdtrace.cache import cache_root, compute_once, content_key, load_npz, save_npz
 from kdtrace.scene import Camera, Material, Scene
 from references.llvm import activate_variant
 
@@ -414,14 +414,18 @@ def render_reference(scene: Scene, spp: int, max_depth: int, seed: int, width: i
     variant = activate_variant(variant)
     key = reference_key(scene, spp, max_depth, seed, width, height, variant)
     path = _cache_path(scene, key)
-    if cache and (hit := _from_cache(path, key)) is not None:
-        return hit
-    reference = _render(scene, spp, max_depth, seed, width, height, variant, key,
-                        _cache_path(scene, key, ".partial") if cache else None)
-    if cache:
+    if not cache:
+        return _render(scene, spp, max_depth, seed, width, height, variant, key, None)
+
+    def render_and_save() -> Reference:
+        reference = _render(scene, spp, max_depth, seed, width, height, variant, key,
+                            _cache_path(scene, key, ".partial"))
         save_npz(path, {"rgb": reference.rgb, "variance": reference.variance}, reference.metadata)
         _cache_path(scene, key, ".partial").unlink(missing_ok=True)
-    return reference
+        return reference
+
+    # claimed: a second process waits for the render (and its checkpoint) instead of doing it again
+    return compute_once(path, lambda: _from_cache(path, key), render_and_save)
 
 
 def _render(scene: Scene, spp: int, max_depth: int, seed: int, width: int, height: int, variant: str,

@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from kdtrace.cache import atomic_write, cache_root
+from kdtrace.cache import atomic_write, cache_root, compute_once
 from kdtrace.scene import Material, Scene
 
 #: Bumped whenever a loader's output changes, so stale cache entries are never read.
@@ -227,16 +227,16 @@ def cached_load(key: str, parse: Callable[[WarningLog], Scene], use_cache: bool)
     if not use_cache:
         return parse(log)
     entry = cache_directory() / f"{key}.npz"
-    if entry.exists():
-        scene = _load_cached(entry)
-        if scene is not None:
-            return scene
-    scene = parse(log)
-    try:
-        _save_cached(entry, scene, log.messages)
-    except OSError as error:
-        warnings.warn(f"mesh cache not written to {entry}: {error}", SceneWarning, stacklevel=2)
-    return scene
+
+    def parse_and_save() -> Scene:
+        scene = parse(log)
+        try:
+            _save_cached(entry, scene, log.messages)
+        except OSError as error:
+            warnings.warn(f"mesh cache not written to {entry}: {error}", SceneWarning, stacklevel=4)
+        return scene
+
+    return compute_once(entry, lambda: _load_cached(entry) if entry.exists() else None, parse_and_save)
 
 
 def load_mesh(path: str | Path, *, use_cache: bool = True) -> Scene:
