@@ -3,7 +3,8 @@
 Artefacts (meshes, KD-trees, dataset views, references, networks) are stored under names
 made of a SHA-256 key of everything they depend on. Writes go to a temporary file in the
 same directory and are renamed into place, so an interrupted run never leaves a
-half-written artefact behind.
+half-written artefact behind. A write that fills the disk or the quota raises
+:class:`DiskFullError`, naming the file, the bytes it needs and the bytes free.
 
 Several processes may share one cache (a report while a benchmark runs, Dask workers,
 two users): :func:`compute_once` makes the first one to miss an artefact **claim** it
@@ -16,9 +17,12 @@ with a warning (both write atomically, so nothing is lost, the work is only done
 
 from __future__ import annotations
 
+import contextlib
+import errno
 import hashlib
 import json
 import os
+import shutil
 import tempfile
 import warnings
 from collections.abc import Callable, Iterator
@@ -175,36 +179,137 @@ def drop_stale_kernel_cache(kernels: ModuleType, *inlined_from: ModuleType) -> b
     return bool(stale)
 
 
-def atomic_write(path: str | Path, write: Callable[[str], None]) -> Path:
+#: errno values of a write that ran out of room: the disk is full, or the user's quota is spent.
+DISK_FULL_ERRNOS = (errno.ENOSPC, errno.EDQUOT)
+
+
+def _megabytes(count: int) -> str:
+    """``count`` bytes as ``"12.3 MB (12,345,678 bytes)"``."""
+    return f"{count / 1e6:.1f} MB ({count:,} bytes)"
+
+
+class DiskFullError(OSError):
+    """A write ran out of disk space or quota; the destination was left as it was.
+
+    Parameters
+    ----------
+    code : int
+        ``errno.ENOSPC`` or ``errno.EDQUOT``.
+    path : str or Path
+        The file that was being written.
+    bytes_needed : int or None
+        Size of the complete file in bytes, when known before writing.
+    bytes_free : int or None
+        Free bytes on the destination's file system after the failure
+        (``shutil.disk_usage``), None when that cannot be read.
+    bytes_written : int
+        Bytes of the temporary file when the write failed (deleted since).
+    """
+
+    def __init__(self, code: int, path: str | Path, bytes_needed: int | None, bytes_free: int | None,
+                 bytes_written: int = 0) -> None:
+        super().__init__(code, os.strerror(code), str(path))
+        self.bytes_needed = bytes_needed
+        self.bytes_free = bytes_free
+        self.bytes_written = bytes_written
+
+    def __reduce__(self):  # OSError's pickles only (errno, strerror): keep every field across processes
+        return type(self), (self.errno, self.filename, self.bytes_needed, self.bytes_free, self.bytes_written)
+
+    def __str__(self) -> str:
+        if self.bytes_needed is not None:
+            needed = f"needs {_megabytes(self.bytes_needed)}"
+        else:
+            needed = f"needs more than the {_megabytes(self.bytes_written)} written before the failure"
+        free = "free space unknown" if self.bytes_free is None else f"{_megabytes(self.bytes_free)} free"
+        return (f"cannot write {self.filename}: {self.strerror} ({needed}, {free}); "
+                "the previous file, if any, is kept and no partial file was left")
+
+
+def _free_bytes(folder: Path) -> int | None:
+    """Free bytes on ``folder``'s file system for this user; None when it cannot be read."""
+    try:
+        return shutil.disk_usage(folder).free
+    except OSError:
+        return None
+
+
+def atomic_write(path: str | Path, write: Callable[[str], None], size: int | None = None) -> Path:
     """Call ``write(temporary_path)`` beside ``path`` (same suffix), then rename it into place.
 
     The temporary file lives in the destination folder, so the rename is atomic: readers
     see the old file or the complete new one, never a partial write. Files are made
     world-readable (0644), since results and caches are meant to be shared.
+
+    Parameters
+    ----------
+    path : str or Path
+        Destination file.
+    write : callable
+        Writes the complete file to the path it is given.
+    size : int, optional
+        Bytes the file will take, when known, for the message of a full disk.
+
+    Raises
+    ------
+    DiskFullError
+        The disk or quota filled up (``ENOSPC``, ``EDQUOT``) while the temporary was made,
+        written or renamed: it is deleted, ``path`` is unchanged, and the message names
+        ``path``, ``size`` and the free bytes.
+    OSError
+        Any other failure, after the temporary is deleted.
     """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    handle, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=path.suffix)
-    os.close(handle)
+    temporary = None
     try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        handle, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=path.suffix)
+        os.close(handle)
         write(temporary)
         os.chmod(temporary, 0o644)
         os.replace(temporary, path)
-    except BaseException:
-        Path(temporary).unlink(missing_ok=True)
+    except BaseException as error:
+        written = 0
+        if temporary is not None:
+            with contextlib.suppress(OSError):
+                written = os.stat(temporary).st_size
+            Path(temporary).unlink(missing_ok=True)
+        if isinstance(error, OSError) and error.errno in DISK_FULL_ERRNOS and not isinstance(error, DiskFullError):
+            folder = next((parent for parent in (path.parent, *path.parents) if parent.is_dir()), Path("."))
+            raise DiskFullError(error.errno, path, size, _free_bytes(folder), written) from error
         raise
     return path
 
 
+def _write_all(path: str, data: bytes) -> None:
+    """Write ``data`` to the existing file ``path`` with ``os.write`` until all of it is written."""
+    handle = os.open(path, os.O_WRONLY | os.O_TRUNC)
+    try:
+        view = memoryview(data)
+        while view:
+            view = view[os.write(handle, view):]
+    finally:
+        os.close(handle)
+
+
 def atomic_write_bytes(path: str | Path, data: bytes) -> Path:
-    """Write ``data`` to ``path`` atomically (see :func:`atomic_write`)."""
-    return atomic_write(path, lambda temporary: Path(temporary).write_bytes(data))
+    """Write ``data`` to ``path`` atomically (see :func:`atomic_write`; a full disk is a :class:`DiskFullError`)."""
+    return atomic_write(path, lambda temporary: _write_all(temporary, data), size=len(data))
+
+
+def npz_bytes(arrays: dict[str, np.ndarray]) -> int:
+    """Upper bound of the bytes of an uncompressed ``.npz`` of ``arrays``: their data plus 1 KiB per array of headers."""
+    return sum(np.asarray(array).nbytes + 1024 for array in arrays.values())
 
 
 def save_npz(path: Path, arrays: dict[str, np.ndarray], metadata: dict[str, Any]) -> None:
-    """Atomically save arrays plus a JSON metadata record to ``path`` (suffix ``.npz``)."""
+    """Atomically save arrays plus a JSON metadata record to ``path`` (suffix ``.npz``).
+
+    A full disk is a :class:`DiskFullError` naming ``path`` and :func:`npz_bytes`.
+    """
     encoded = np.frombuffer(json.dumps(metadata).encode(), np.uint8)
-    atomic_write(path, lambda temporary: np.savez(temporary, __metadata__=encoded, **arrays))
+    atomic_write(path, lambda temporary: np.savez(temporary, __metadata__=encoded, **arrays),
+                 size=npz_bytes({"__metadata__": encoded, **arrays}))
 
 
 def load_npz(path: Path) -> tuple[dict[str, np.ndarray], dict[str, Any]] | None:

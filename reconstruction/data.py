@@ -63,6 +63,7 @@ import numpy as np
 from tqdm import tqdm
 
 from kdtrace.cache import (
+    DiskFullError,
     atomic_write_bytes,
     cache_root,
     compute_once,
@@ -395,6 +396,8 @@ def _render_and_save_view(scene: Scene, profile: ReconstructionProfile, index: i
     metadata = json.loads(json.dumps(metadata))
     try:
         save_npz(path, arrays, metadata)
+    except DiskFullError as error:  # its message names the bytes needed and free
+        raise DatasetWriteError(error.errno, str(error)) from error
     except OSError as error:
         raise DatasetWriteError(error.errno, f"cannot write {path}: {error.strerror or error}; nothing half-written "
                                 "was left") from error

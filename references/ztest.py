@@ -64,7 +64,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import time
 import warnings
 from dataclasses import dataclass, field
@@ -74,6 +73,7 @@ from typing import Any
 import numpy as np
 from scipy import stats
 
+from kdtrace.cache import atomic_write_bytes
 from kdtrace.imageio import write_exr, write_png
 
 #: Overall (family-wise) significance of one image comparison.
@@ -288,17 +288,6 @@ def loglog_slope(x: np.ndarray, y: np.ndarray) -> float:
 
 
 # ------------------------------------------------------------------ artefacts
-def _atomic_text(path: Path, text: str) -> Path:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    temporary = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    try:
-        temporary.write_text(text)
-        os.replace(temporary, path)
-    finally:
-        temporary.unlink(missing_ok=True)
-    return path
-
-
 def write_failure_artefacts(out_dir: str | Path, ours: np.ndarray, reference: np.ndarray, result: ZTestResult,
                             extra: dict[str, Any] | None = None, exposure: float = 1.0) -> dict[str, Path]:
     """Write the files that explain a comparison into ``out_dir``.
@@ -340,7 +329,7 @@ def write_failure_artefacts(out_dir: str | Path, ours: np.ndarray, reference: np
         "failed_png": write_png(out_dir / "failed.png", result.pixel_failed.astype(np.float32)),
     }
     summary = {**result.summary(), **(extra or {}), "files": sorted(p.name for p in written.values())}
-    written["summary"] = _atomic_text(out_dir / "summary.json", json.dumps(summary, indent=2, default=str))
+    written["summary"] = atomic_write_bytes(out_dir / "summary.json", json.dumps(summary, indent=2, default=str).encode())
     return written
 
 

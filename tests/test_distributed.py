@@ -210,6 +210,9 @@ def test_unwritable_output_is_a_clear_error_and_leaves_the_dataset(cache, monkey
     with pytest.raises(data.DatasetWriteError, match=os.strerror(code)) as caught:
         data.generate_dataset(SCENE, tiny, progress=False)
     assert str(root) in str(caught.value)
+    if code == errno.ENOSPC:  # the view's bytes and the free space are named
+        assert f"cannot write {root / 'view-0002.npz'}" in str(caught.value)
+        assert "needs" in str(caught.value) and "bytes) free" in str(caught.value)
     assert _listing(root) == before
 
 
