@@ -22,7 +22,6 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
-import os
 import sys
 import time
 import warnings
@@ -39,6 +38,7 @@ from kdtrace.config import DEFAULT_CONFIG
 from kdtrace.imageio import srgb_decode
 from kdtrace.kdtree import KDTree, build_kdtree
 from kdtrace.rays import camera_basis
+from kdtrace.resources import require_memory
 from kdtrace.scene import Camera, Scene
 
 #: Kernel features, in the order of the flags of :func:`kdtrace._render_kernels.render_tiles`.
@@ -96,22 +96,25 @@ def _positive_int(name: str, value) -> int:
     return int(value)
 
 
-def _check_image_size(width: int, height: int, aux: bool) -> None:
-    """Refuse a resolution whose image buffers alone would not fit in physical memory."""
-    channels = 3 + 3 + (3 + 3 + 1 if aux else 0)  # rgb, variance; albedo, normal, depth
-    needed = width * height * channels * np.dtype(np.float32).itemsize
-    try:
-        memory = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
-        where = "this machine's memory"
-    except (AttributeError, ValueError, OSError):  # no sysconf (Windows): numpy's own limit
-        memory = sys.maxsize
-        where = "the largest array numpy can allocate"
-    if needed > memory:
-        buffers = "rgb, variance, albedo, normal and depth" if aux else "rgb and variance"
-        raise ValueError(
-            f"width x height = {width} x {height} ({width * height:,} pixels) needs about "
-            f"{needed / 2**30:,.1f} GiB for the {buffers} buffers, more than {where} "
-            f"({memory / 2**30:,.1f} GiB); choose a smaller resolution")
+def frame_bytes(width: int, height: int, aux: bool, tile_size: int) -> int:
+    """Upper bound of the bytes a render allocates for its frame: every output buffer as float32.
+
+    rgb and variance (3 channels each), with ``aux`` albedo, normal (3 each) and depth (1),
+    plus 4 int64 counters per tile. Samples accumulate in place, so the bound does not grow
+    with spp; the scene and its tree exist before the render (:func:`kdtrace.kdtree.build_kdtree`
+    checks its own).
+    """
+    channels = 3 + 3 + (3 + 3 + 1 if aux else 0)
+    tiles = -(-width // tile_size) * -(-height // tile_size)
+    return width * height * channels * np.dtype(np.float32).itemsize + tiles * 4 * np.dtype(np.int64).itemsize
+
+
+def _check_image_size(width: int, height: int, aux: bool, tile_size: int) -> None:
+    """Refuse a resolution whose frame buffers (:func:`frame_bytes`) would not fit in the memory available."""
+    buffers = "rgb, variance, albedo, normal and depth" if aux else "rgb and variance"
+    require_memory(frame_bytes(width, height, aux, tile_size),
+                   f"width x height = {width} x {height} ({width * height:,} pixels) for the {buffers} buffers",
+                   "choose a smaller resolution")
 
 
 def _check_camera(camera: Camera) -> None:
@@ -367,8 +370,9 @@ def render(
     Raises
     ------
     ValueError
-        Non-positive spp, resolution or tile size, a resolution whose image buffers do
-        not fit in memory, bad max_depth, seed or first_sample, NaN in the camera or a material, or
+        Non-positive spp, resolution or tile size, a resolution whose frame buffers
+        (:func:`frame_bytes`) do not fit in the memory available (an InsufficientMemoryError),
+        bad max_depth, seed or first_sample, NaN in the camera or a material, or
         ``features`` missing something the scene needs.
 
     Warns
@@ -413,7 +417,7 @@ def render(
         if not needed <= chosen:
             raise ValueError(f"scene {scene.name!r} needs features {sorted(needed - chosen)}")
     aux = "aux" in chosen
-    _check_image_size(width, height, aux)
+    _check_image_size(width, height, aux, tile_size)
     tree = build_kdtree(scene, variant) if tree is None else tree
     vector_spans = tree.vector_spans if vector_spans is None else bool(vector_spans) and tree.watertight
     shadow_packets = shadow_packets and tree.watertight

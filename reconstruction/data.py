@@ -74,6 +74,7 @@ from kdtrace.cache import (
 from kdtrace.config import DEFAULT_CONFIG, DistributedConfig, ReconstructionProfile
 from kdtrace.imageio import srgb_decode
 from kdtrace.provenance import stamp
+from kdtrace.resources import require_memory
 from kdtrace.scene import Camera, Scene
 
 #: Bump when the way views are made changes: old datasets become cache misses.
@@ -434,6 +435,17 @@ def view_bytes(profile: ReconstructionProfile) -> int:
     return profile.width * profile.height * sum(BUFFERS.values()) * 4
 
 
+def view_memory_bytes(profile: ReconstructionProfile) -> int:
+    """Upper bound of the memory of rendering one view in this process: 4 x :func:`view_bytes`.
+
+    The noisy render's buffers (one :func:`view_bytes`), the reference's float64 running sums
+    with its float32 mean and variance (72 bytes per pixel, under 1.5 more), and one more for the
+    film of Mitsuba and the arrays being written. Views are rendered one at a time, so this does
+    not grow with their number.
+    """
+    return 4 * view_bytes(profile)
+
+
 def check_disk_space(root: Path, views_to_render: int, profile: ReconstructionProfile) -> None:
     """Refuse, before anything is rendered, a dataset whose views would not fit on ``root``'s disk.
 
@@ -530,6 +542,9 @@ def generate_dataset(scene: str | Scene, profile: str | ReconstructionProfile = 
     ------
     DatasetWriteError
         The dataset folder cannot be written; nothing was changed.
+    kdtrace.resources.InsufficientMemoryError
+        Rendering one view in this process (:func:`view_memory_bytes`) would not fit in the
+        memory available; nothing was rendered.
     kdtrace.distributed.UnitError
         A view failed on a worker (after retries); finished views are kept.
 
@@ -566,6 +581,8 @@ def generate_dataset(scene: str | Scene, profile: str | ReconstructionProfile = 
                                       {"scheduler": scheduler, "client": client, "workers": workers,
                                        "progress": progress, "config": settings})
     else:
+        require_memory(view_memory_bytes(profile), f"a {profile.width}x{profile.height} view of the dataset in {root}",
+                       "choose a smaller width and height")
         disable = None if progress is None else not progress
         records = [make_view(scene, profile, view.index, root, key, variant)
                    for view in tqdm(views, desc=f"dataset {scene.name}", unit="view", disable=disable)]
@@ -635,10 +652,20 @@ def crops(dataset: Dataset, split: str, crop_size: int, crops_per_view: int, see
     ------
     ValueError
         The split has no views, or the crop is larger than the views.
+    kdtrace.resources.InsufficientMemoryError
+        The views (held whole until their crops are stacked) and the crops would not fit in
+        the memory available; nothing was loaded.
     """
     names = dataset.views(split)
     if not names:
         raise ValueError(f"dataset {dataset.root} has no {split} views")
+    # every view stays whole in memory until the crops cut from it are stacked
+    settings = dataset.manifest["settings"]
+    channels = sum(BUFFERS[name] for name in buffers)
+    whole_views = len(names) * settings["width"] * settings["height"] * sum(BUFFERS.values()) * 4
+    stacked = len(names) * crops_per_view * crop_size * crop_size * channels * 4
+    require_memory(whole_views + stacked, f"{crops_per_view} crops of {crop_size}x{crop_size} from each of the "
+                   f"{len(names)} {split} views of {dataset.root}", "use fewer views or crops")
     out: dict[str, list[np.ndarray]] = {name: [] for name in buffers}
     for name in names:
         view = dataset.load_view(name)

@@ -336,15 +336,15 @@ def test_bad_arguments_are_clear_errors(cbox):
         render(with_material(cbox, "floor", albedo=(math.nan, 0.5, 0.5)))
 
 
-@pytest.mark.parametrize(("aux", "gib", "buffers"), [(True, "48,428.8", "rgb, variance, albedo, normal and depth"),
-                                                     (False, "22,351.7", "rgb and variance")])
+@pytest.mark.parametrize(("aux", "gib", "buffers"), [(True, "48,545.19", "rgb, variance, albedo, normal and depth"),
+                                                     (False, "22,468.16", "rgb and variance")])
 def test_resolution_too_large_for_memory_is_refused_before_any_work(cbox, aux, gib, buffers, monkeypatch):
     def no_tree(*args, **kwargs):
         raise AssertionError("the size check must come before the tree is built")
 
     monkeypatch.setattr(importlib.import_module("kdtrace.render"), "build_kdtree", no_tree)  # the module, not the function
     with pytest.raises(ValueError, match=rf"width x height = 1000000 x 1000000 \(1,000,000,000,000 pixels\) "
-                                         rf"needs about {gib} GiB for the {buffers} buffers, more than "):
+                                         rf"for the {buffers} buffers needs up to {gib} GiB"):
         render(cbox, width=10**6, height=10**6, aux=aux)
 
 
