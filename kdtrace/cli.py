@@ -20,6 +20,7 @@ from pathlib import Path
 from tabulate import tabulate
 from tqdm import tqdm
 
+from kdtrace.cache import DiskFullError
 from kdtrace.config import load_config
 
 REPOSITORY = Path(__file__).resolve().parents[1]
@@ -43,6 +44,175 @@ def _positive_float(text: str) -> float:
     if not (value > 0 and value < float("inf")):
         raise argparse.ArgumentTypeError(f"must be a positive finite number, got {text!r}")
     return value
+
+
+class _OneLineParser(argparse.ArgumentParser):
+    """An argument parser whose errors are one line on stderr (no usage block) and exit status 2."""
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: error: {message}\n")
+
+
+class OptionError(ValueError):
+    """A command-line value that is wrong in context (unknown name, conflicting options); its message starts with the option."""
+
+
+def _integer(text: str, minimum: int, allowed: tuple[int, ...] = ()) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
+    if value < minimum and value not in allowed:
+        also = "".join(f" or {value_}" for value_ in allowed)
+        raise argparse.ArgumentTypeError(f"must be an integer >= {minimum}{also}, got {text!r}")
+    return value
+
+
+def _positive_int(text: str) -> int:
+    """argparse type: an integer >= 1."""
+    return _integer(text, 1)
+
+
+def _non_negative_int(text: str) -> int:
+    """argparse type: an integer >= 0."""
+    return _integer(text, 0)
+
+
+def _max_depth(text: str) -> int:
+    """argparse type: a path length >= 1 (Mitsuba's convention), or -1 for unbounded."""
+    return _integer(text, 1, (-1,))
+
+
+SCENE_SUFFIXES = (".toml", ".obj", ".ply")
+
+
+def _scene(text: str) -> str:
+    """argparse type: a scene name of ``scenes/`` or an existing .toml, .obj or .ply file."""
+    from kdtrace.scenes import list_scenes
+
+    if Path(text).suffix.lower() in SCENE_SUFFIXES:
+        if Path(text).is_dir():
+            raise argparse.ArgumentTypeError(f"{text} is a folder, not a scene file")
+        if not Path(text).is_file():
+            raise argparse.ArgumentTypeError(f"{text}: no such scene file")
+        return text
+    if text not in list_scenes():
+        raise argparse.ArgumentTypeError(f"unknown scene {text!r}; available: {', '.join(list_scenes())} "
+                                         f"(or a {', '.join(SCENE_SUFFIXES)} file)")
+    return text
+
+
+def _names(text: str) -> list[str]:
+    """argparse type: a comma-separated list of one or more names, none empty."""
+    names = [name.strip() for name in text.split(",")]
+    if not any(names):
+        raise argparse.ArgumentTypeError("empty list; give one or more comma-separated names")
+    if not all(names):
+        raise argparse.ArgumentTypeError(f"empty name in {text!r}")
+    return names
+
+
+def _spec(text: str) -> str:
+    """argparse type: a non-empty plug-in spec (or comma-separated specs)."""
+    if not text.strip(" ,"):
+        raise argparse.ArgumentTypeError("empty plug-in name")
+    return text
+
+
+def _existing_file(text: str) -> Path:
+    """argparse type: a file that exists."""
+    if Path(text).is_dir():
+        raise argparse.ArgumentTypeError(f"{text} is a folder, not a file")
+    if not Path(text).is_file():
+        raise argparse.ArgumentTypeError(f"{text}: no such file")
+    return Path(text)
+
+
+def _existing_folder(text: str) -> Path:
+    """argparse type: a folder that exists."""
+    if Path(text).exists() and not Path(text).is_dir():
+        raise argparse.ArgumentTypeError(f"{text} is a file, not a folder")
+    if not Path(text).is_dir():
+        raise argparse.ArgumentTypeError(f"{text}: no such folder")
+    return Path(text)
+
+
+def _folder(text: str) -> Path:
+    """argparse type: a folder to write into (created when missing), not an existing file."""
+    if Path(text).exists() and not Path(text).is_dir():
+        raise argparse.ArgumentTypeError(f"{text} is a file, not a folder")
+    return Path(text)
+
+
+def _file_to_write(text: str) -> Path:
+    """argparse type: a file to write, not an existing folder."""
+    if Path(text).is_dir():
+        raise argparse.ArgumentTypeError(f"{text} is a folder, not a file")
+    return Path(text)
+
+
+def _check_specs(option: str, values: list[str] | None, group: str) -> None:
+    """Resolve each plug-in spec of ``option`` (without calling it); OptionError naming it otherwise."""
+    from kdtrace.plugins import PluginError, resolve_factory
+
+    for value in values or ():
+        for spec in (spec.strip() for spec in value.split(",")):
+            if spec:
+                try:
+                    resolve_factory(spec, group)
+                except PluginError as error:
+                    raise OptionError(f"{option}: {error}") from None
+
+
+def _check_options(args, config) -> None:
+    """Checks that need the configuration or several options; OptionError naming the option."""
+    from kdtrace.plugins import ACCELERATOR_GROUP, DENOISER_GROUP
+
+    command = args.command
+    if command in ("report", "gate", "update-baseline", "verdict"):
+        try:
+            config.profile(args.profile)
+        except ValueError as error:
+            raise OptionError(f"--profile: {error}") from None
+    if command == "quality":
+        try:
+            config.reconstruction.profile(args.profile)
+        except ValueError as error:
+            raise OptionError(f"--profile: {error}") from None
+    if command == "dataset":
+        try:
+            config.reconstruction.profile(args.dataset_profile)
+        except ValueError as error:
+            raise OptionError(f"--profile: {error}") from None
+        if args.in_process and (args.scheduler or args.workers is not None):
+            raise OptionError("--in-process: renders without Dask; it cannot be combined with "
+                              + " and ".join(option for option, value in (("--scheduler", args.scheduler),
+                                                                           ("--workers", args.workers is not None))
+                                             if value))
+    if command == "quality":
+        from kdtrace.scenes import list_scenes
+
+        unknown = [name for name in args.scenes if name not in list_scenes()]
+        if unknown:
+            raise OptionError(f"--scenes: unknown scenes {unknown}; available: {', '.join(list_scenes())}")
+    if command == "report":
+        profile_scenes = config.profile(args.profile).scenes
+        unknown = [name for name in args.scenes or () if name not in profile_scenes]
+        if unknown:
+            raise OptionError(f"--scenes: {unknown} not in profile {args.profile!r}; its scenes: {', '.join(profile_scenes)}")
+        if args.parts:
+            from reports.main import resolve_parts
+
+            try:
+                resolve_parts(args.parts)
+            except ValueError as error:
+                raise OptionError(f"--parts: {error}") from None
+        _check_specs("--accelerator", args.accelerator, ACCELERATOR_GROUP)
+        _check_specs("--denoiser", args.denoiser, DENOISER_GROUP)
+    if command == "check-embree":
+        _check_specs("--accelerator", args.accelerator, ACCELERATOR_GROUP)
+    if command == "verdict" and args.results is not None and args.profile != "quick":
+        raise OptionError("--profile: picks the results folder only without RESULTS_DIR; give one of the two")
 
 
 def _writable(folder: Path) -> Path:
@@ -137,7 +307,7 @@ def _compare_mitsuba(args, config) -> int:
 def _quality(args, config) -> int:
     from reconstruction.evaluate import main_quality
 
-    table = main_quality(args.scenes.split(","), args.profile, args.out, progress=True)
+    table = main_quality(args.scenes, args.profile, args.out, progress=True)
     print(tabulate(table, headers="keys", tablefmt="github", showindex=False))
     return 0
 
@@ -206,8 +376,7 @@ def _compare(args, config) -> int:
 def _report(args, config) -> int:
     from reports.main import run_report
 
-    scenes = args.scenes.split(",") if args.scenes else None
-    parts = args.parts.split(",") if args.parts else None
+    scenes, parts = args.scenes, args.parts
     out_dir = _writable(results_dir(args.profile, args.out))  # before any work
     if args.scheduler:
         # the environment is where every part (and the dataset generator) looks for a scheduler
@@ -259,82 +428,82 @@ def _update_baseline(args, config) -> int:
 
 def build_parser() -> argparse.ArgumentParser:
     defaults = load_config()
-    parser = argparse.ArgumentParser(prog="kdtrace", description=__doc__.splitlines()[0])
-    parser.add_argument("--config", help="TOML file overriding kdtrace/defaults.toml")
+    parser = _OneLineParser(prog="kdtrace", description=__doc__.splitlines()[0])
+    parser.add_argument("--config", type=_existing_file, help="TOML file overriding kdtrace/defaults.toml")
     parser.add_argument("--quiet", action="store_true", help="do not print warnings")
     sub = parser.add_subparsers(dest="command", required=True)
 
     sub.add_parser("scenes", help="list the scene descriptions with their counts").set_defaults(run=_scenes)
 
     build = sub.add_parser("build", help="build (or load cached) KD-trees and print their statistics")
-    build.add_argument("scene", help="scene name, .toml, .obj or .ply")
+    build.add_argument("scene", type=_scene, help="scene name, .toml, .obj or .ply")
     build.add_argument("--variant", choices=("naive", "local", "both"), default="both")
     build.add_argument("--no-cache", action="store_true", help="rebuild even when a cached tree exists")
     build.set_defaults(run=_build)
 
     check = sub.add_parser("check-embree", help="compare our two trees (or --accelerator plug-ins) with Embree ray for ray")
-    check.add_argument("scene", help="scene name, .toml, .obj or .ply")
-    check.add_argument("--rays", type=int, help="rays per kind (default from the configuration: 1,000,000)")
-    check.add_argument("--seed", type=int)
-    check.add_argument("--accelerator", action="append", metavar="NAME",
+    check.add_argument("scene", type=_scene, help="scene name, .toml, .obj or .ply")
+    check.add_argument("--rays", type=_positive_int, help="rays per kind (default from the configuration: 1,000,000)")
+    check.add_argument("--seed", type=_non_negative_int)
+    check.add_argument("--accelerator", action="append", type=_spec, metavar="NAME",
                        help="plug-in to compare: a registered name (local, naive, embree, ...) or package.module:factory; "
                             "repeatable or comma-separated (default: our two trees, local and naive)")
     check.set_defaults(run=_check_embree)
 
     render = sub.add_parser("render", help="path trace a scene and write EXR (linear) and PNG (sRGB) images")
-    render.add_argument("scene", help="scene name, .toml, .obj or .ply")
-    render.add_argument("--spp", type=int, help=f"samples per pixel (default {defaults.render.spp})")
-    render.add_argument("--max-depth", type=int, help="Mitsuba's convention: 2 direct light, 3 one bounce, -1 unbounded")
-    render.add_argument("--seed", type=int)
-    render.add_argument("--width", type=int, help="default: the scene camera's")
-    render.add_argument("--height", type=int, help="default: the scene camera's")
+    render.add_argument("scene", type=_scene, help="scene name, .toml, .obj or .ply")
+    render.add_argument("--spp", type=_positive_int, help=f"samples per pixel (default {defaults.render.spp})")
+    render.add_argument("--max-depth", type=_max_depth, help="Mitsuba's convention: 2 direct light, 3 one bounce, -1 unbounded")
+    render.add_argument("--seed", type=_non_negative_int)
+    render.add_argument("--width", type=_positive_int, help="default: the scene camera's")
+    render.add_argument("--height", type=_positive_int, help="default: the scene camera's")
     render.add_argument("--variant", choices=("local", "naive"), default="local")
-    render.add_argument("--out", default="renders", help="output folder")
+    render.add_argument("--out", type=_folder, default="renders", help="output folder")
     render.set_defaults(run=_render)
 
     compare = sub.add_parser("compare", help="every metric of two images, linear and display-referred, and a FLIP map")
-    compare.add_argument("test", help="image to judge: EXR or NPY (linear), PNG or JPEG (sRGB)")
-    compare.add_argument("reference", help="the reference image, same size")
+    compare.add_argument("test", type=_existing_file, help="image to judge: EXR or NPY (linear), PNG or JPEG (sRGB)")
+    compare.add_argument("reference", type=_existing_file, help="the reference image, same size")
     compare.add_argument("--exposure", type=_positive_float,
                          help="display exposure (default: the reference's 99th-percentile luminance to 1; 1 for PNG)")
-    compare.add_argument("--map", metavar="PNG", help="also write the FLIP error map here")
+    compare.add_argument("--map", type=_file_to_write, metavar="PNG", help="also write the FLIP error map here")
     compare.set_defaults(run=_compare)
 
     reference = sub.add_parser("reference", help="render (or fetch from the cache) a Mitsuba 3 reference image")
-    reference.add_argument("scene")
-    reference.add_argument("--spp", type=int, default=256)
-    reference.add_argument("--max-depth", type=int, default=defaults.render.max_depth)
-    reference.add_argument("--seed", type=int, default=0)
-    reference.add_argument("--width", type=int)
-    reference.add_argument("--height", type=int)
+    reference.add_argument("scene", type=_scene)
+    reference.add_argument("--spp", type=_positive_int, default=256)
+    reference.add_argument("--max-depth", type=_positive_int, default=defaults.render.max_depth)
+    reference.add_argument("--seed", type=_non_negative_int, default=0)
+    reference.add_argument("--width", type=_positive_int)
+    reference.add_argument("--height", type=_positive_int)
     reference.add_argument("--force", action="store_true", help="render again even when cached")
-    reference.add_argument("--out", default="out/references")
+    reference.add_argument("--out", type=_folder, default="out/references")
     reference.set_defaults(run=_reference)
 
     compare = sub.add_parser("compare-mitsuba", help="per-pixel Z-test of our render against Mitsuba 3's")
-    compare.add_argument("scene")
-    compare.add_argument("--spp", type=int, default=256, help="our samples per pixel")
-    compare.add_argument("--ref-spp", type=int, default=256, help="Mitsuba's samples per pixel")
-    compare.add_argument("--max-depth", type=int, default=defaults.render.max_depth)
-    compare.add_argument("--seed", type=int, default=0)
-    compare.add_argument("--width", type=int, default=32)
-    compare.add_argument("--height", type=int, default=32)
-    compare.add_argument("--out", default="out/compare", help="folder for images, error and p-value maps")
+    compare.add_argument("scene", type=_scene)
+    compare.add_argument("--spp", type=_positive_int, default=256, help="our samples per pixel")
+    compare.add_argument("--ref-spp", type=_positive_int, default=256, help="Mitsuba's samples per pixel")
+    compare.add_argument("--max-depth", type=_positive_int, default=defaults.render.max_depth)
+    compare.add_argument("--seed", type=_non_negative_int, default=0)
+    compare.add_argument("--width", type=_positive_int, default=32)
+    compare.add_argument("--height", type=_positive_int, default=32)
+    compare.add_argument("--out", type=_folder, default="out/compare", help="folder for images, error and p-value maps")
     compare.set_defaults(run=_compare_mitsuba)
 
     quality = sub.add_parser("quality", help="train (or reuse) the denoiser and superresolution nets; tabulate test quality")
-    quality.add_argument("--scenes", default="cbox-original", help="comma-separated scene names")
+    quality.add_argument("--scenes", type=_names, default="cbox-original", help="comma-separated scene names")
     quality.add_argument("--profile", default="quick", help="reconstruction profile (quick, paper)")
-    quality.add_argument("--out", default="reports/quality", help="folder for quality.md and quality.csv")
+    quality.add_argument("--out", type=_folder, default="reports/quality", help="folder for quality.md and quality.csv")
     quality.set_defaults(run=_quality)
 
     dataset = sub.add_parser("dataset", help="generate (or complete) a Precision Graphics dataset, on Dask workers")
-    dataset.add_argument("scene", help="scene name, .toml, .obj or .ply")
+    dataset.add_argument("scene", type=_scene, help="scene name, .toml, .obj or .ply")
     dataset.add_argument("--profile", dest="dataset_profile", default="quick",
                          help="reconstruction profile (quick, paper)")
     dataset.add_argument("--scheduler", help="address of a running Dask scheduler (default $KDTRACE_SCHEDULER, "
                          "else a local cluster)")
-    dataset.add_argument("--workers", type=int, help="worker processes of the local cluster (default: one per core)")
+    dataset.add_argument("--workers", type=_non_negative_int, help="worker processes of the local cluster (default: one per core)")
     dataset.add_argument("--mitsuba-variant", help="Mitsuba variant of the references, e.g. cuda_ad_rgb on GPU "
                          "workers (falls back when unusable)")
     dataset.add_argument("--in-process", action="store_true", help="render in this process, without Dask")
@@ -342,25 +511,25 @@ def build_parser() -> argparse.ArgumentParser:
 
     report = sub.add_parser("report", help="the main job: every report part of a profile, an index, optionally the gate")
     report.add_argument("--profile", default="quick", help="profile name from the configuration (quick, standard, paper)")
-    report.add_argument("--scenes", help="comma-separated subset of the profile's scenes")
-    report.add_argument("--parts", help="comma-separated report parts (default all: table1, agreement, "
+    report.add_argument("--scenes", type=_names, help="comma-separated subset of the profile's scenes")
+    report.add_argument("--parts", type=_names, help="comma-separated report parts (default all: table1, agreement, "
                         "reconstruction, error_time, combined, scaleout)")
-    report.add_argument("--out", help="output folder (default results/PROFILE; $KDTRACE_RESULTS/PROFILE when set)")
+    report.add_argument("--out", type=_folder, help="output folder (default results/PROFILE; $KDTRACE_RESULTS/PROFILE when set)")
     report.add_argument("--fresh", action="store_true", help="measure everything again instead of reusing results")
     report.add_argument("--gate", action="store_true", help="then compare with the committed baselines; exit 1 on a regression")
     report.add_argument("--scheduler", help="address of a running Dask scheduler: Table 1 rows and dataset views "
                         "become units of work on its workers (default $KDTRACE_SCHEDULER, else all in this process)")
-    report.add_argument("--accelerator", action="append", metavar="NAME",
+    report.add_argument("--accelerator", action="append", type=_spec, metavar="NAME",
                         help="also put this plug-in accelerator through Table 1 and the agreement part: a registered "
                              "name (kdtrace.accelerators) or package.module:factory; repeatable or comma-separated")
-    report.add_argument("--denoiser", action="append", metavar="NAME",
+    report.add_argument("--denoiser", action="append", type=_spec, metavar="NAME",
                         help="also put this plug-in denoiser through Tables 2 and 6 and the error-time sweep: a "
                              "registered name (kdtrace.denoisers) or package.module:factory; repeatable or comma-separated")
     report.set_defaults(run=_report)
 
     verdict = sub.add_parser("verdict", help="write the one-page verdict (verdict.md, verdict.html) of a results folder "
                              "again, from what its report wrote; measures nothing")
-    verdict.add_argument("results", nargs="?", metavar="RESULTS_DIR",
+    verdict.add_argument("results", nargs="?", type=_existing_folder, metavar="RESULTS_DIR",
                          help="results folder of a report run (default results/PROFILE)")
     verdict.add_argument("--profile", default="quick", help="profile whose results folder to use without RESULTS_DIR")
     verdict.set_defaults(run=_verdict)
@@ -369,8 +538,8 @@ def build_parser() -> argparse.ArgumentParser:
                                ("update-baseline", _update_baseline, "rewrite the committed baseline from the latest run")):
         parser_ = sub.add_parser(command, help=what)
         parser_.add_argument("--profile", default="quick", help="profile name (selects results/PROFILE and the baselines)")
-        parser_.add_argument("--out", help="results folder of the run (default results/PROFILE)")
-        parser_.add_argument("--baselines", metavar="DIR",
+        parser_.add_argument("--out", type=_existing_folder, help="results folder of the run (default results/PROFILE)")
+        parser_.add_argument("--baselines", type=_existing_folder if command == "gate" else _folder, metavar="DIR",
                              help="folder of the baselines PROFILE.json and PROFILE.ratios.KIND.json "
                                   "(default reports/baseline)")
         parser_.set_defaults(run=run)
@@ -402,15 +571,18 @@ def _show_warnings_as_lines(quiet: bool) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    """Run the command line; returns the exit status (2: a bad argument or an unusable input, on one line)."""
+    try:
+        args = build_parser().parse_args(argv)
+    except SystemExit as exit_:  # --help (0) or a bad argument (2, its one line already printed)
+        return exit_.code if isinstance(exit_.code, int) else 2
     with warnings.catch_warnings():
         _show_warnings_as_lines(args.quiet)
         try:
             config = load_config(args.config)
-            if getattr(args, "profile", None):
-                config.profile(args.profile)  # unknown names fail before any work
+            _check_options(args, config)  # unknown names and conflicts fail before any work
             return args.run(args, config)
-        except (ValueError, FileNotFoundError) as error:
+        except (ValueError, FileNotFoundError, DiskFullError) as error:
             print(f"kdtrace: error: {error}", file=sys.stderr)
             return 2
 

@@ -256,8 +256,9 @@ def test_gate_baseline_on_a_full_disk(tmp_path, monkeypatch):
 
 # ------------------------------------------------------------------ cached artefacts
 def test_kdtree_cache_on_a_full_disk(cache_folder, monkeypatch):
-    from kdtrace.kdtree import build_kdtree
     from test_mitsuba import cornell_like
+
+    from kdtrace.kdtree import build_kdtree
 
     scene = cornell_like(8)
     disk = FullDisk(monkeypatch, cache_folder)
@@ -274,9 +275,10 @@ def test_kdtree_cache_on_a_full_disk(cache_folder, monkeypatch):
 
 
 def test_mitsuba_reference_stopped_by_a_full_disk_resumes_from_its_checkpoint(cache_folder, monkeypatch):
+    from test_mitsuba import cornell_like
+
     from references import llvm
     from references import mitsuba as mref
-    from test_mitsuba import cornell_like
 
     variant = llvm.activate_variant("scalar_rgb")
     scene = cornell_like(16)

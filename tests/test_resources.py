@@ -4,6 +4,7 @@ the bytes they need and the bytes available; what the shipped profiles ask for p
 from __future__ import annotations
 
 import pytest
+from test_mitsuba import cornell_like
 
 from kdtrace import resources
 from kdtrace.config import DEFAULT_CONFIG
@@ -11,7 +12,6 @@ from kdtrace.kdtree import BUILD_BYTES_PER_TRIANGLE, build_bytes, build_kdtree
 from kdtrace.render import frame_bytes, render
 from kdtrace.resources import InsufficientMemoryError, available_memory, require_memory
 from reconstruction import data
-from test_mitsuba import cornell_like
 
 MEMINFO = "MemTotal:       24684332 kB\nMemFree:        19559252 kB\nMemAvailable:    2097152 kB\n"
 
