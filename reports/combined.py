@@ -162,8 +162,11 @@ def _pipeline_inputs(name: str, config: Config, profile_name: str, progress: tqd
 FIGURE_TILE = 64
 
 
-def write_pipeline_figures(config: Config, profile_name: str, out_dir: Path, fresh: bool = False) -> list[Path]:
-    """Figure 8 per reconstruction scene: ``figures/SCENE-pipeline.png`` (kept unless ``fresh``).
+def write_pipeline_figures(config: Config, profile_name: str, out_dir: Path) -> list[Path]:
+    """Figure 8 per reconstruction scene: ``figures/SCENE-pipeline.png``, drawn by every run.
+
+    Drawn again each time (a few seconds a scene), so that a figure never shows the networks
+    of an earlier run beside this run's numbers.
 
     The stages of the pipeline at the final size (the half-size noisy render and the
     denoised frame, each upsampled bicubically; denoised + superresolved) beside the
@@ -181,9 +184,6 @@ def write_pipeline_figures(config: Config, profile_name: str, out_dir: Path, fre
     paths, models = [], None
     for name in names:
         path = out_dir / "figures" / f"{name}-pipeline.png"
-        if path.exists() and not fresh:
-            paths.append(path)
-            continue
         if models is None:
             models = Reconstruction.load(names, recon, names, False)
         with warnings.catch_warnings():
@@ -221,7 +221,7 @@ def generate(config: Config, profile_name: str, out_dir: str | Path, fresh: bool
     """
     out_dir = Path(out_dir)
     rows = scene_rows("combined", ROW_VERSION, measure_scene, config, profile_name, out_dir, fresh, progress)
-    figures = write_pipeline_figures(config, profile_name, out_dir, fresh)
+    figures = write_pipeline_figures(config, profile_name, out_dir)
     write_outputs(rows, config, profile_name, out_dir, figures)
     metrics = []
     for row in rows:
