@@ -1,0 +1,127 @@
+"""Soak every hypothesis property of tests/test_kdtree_stress.py, one after another, resumably.
+
+Each property runs in its own pytest process with ``KDTRACE_SOAK_EXAMPLES`` examples (default
+10,000); its outcome (examples passing, failing, invalid, seconds, the load average before and
+after, commit, machine) is written to ``results/soak/properties/NAME.json`` (``--out``) as soon as it ends,
+and the table ``results/soak/README.md`` is rewritten from every record. A property whose
+record was made with the same example count is skipped, so a soak can span sittings: run the
+command again and it goes on with the next property. Run it on an idle machine.
+
+Usage::
+
+    .venv/bin/python scripts/soak.py [--examples N] [-k PATTERN] [--again] [--out DIR]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import re
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+REPOSITORY = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPOSITORY))
+
+from kdtrace.cache import atomic_write_bytes  # noqa: E402
+from kdtrace.provenance import stamp  # noqa: E402
+
+TESTS = "tests/test_kdtree_stress.py"
+RESULTS = REPOSITORY / "results" / "soak"
+#: hypothesis's statistics line of one phase, e.g. "10000 passing, 0 failing, and 271 invalid test cases".
+_COUNTS = re.compile(r"(\d+) passing, (\d+) failing, and (\d+) invalid")
+_SECONDS = re.compile(r"during generate phase \(([\d.]+) seconds\)")
+
+
+def properties() -> list[str]:
+    """The names of the file's hypothesis properties (tests with ``@given``), in file order."""
+    source = (REPOSITORY / TESTS).read_text().splitlines()
+    names, pending = [], False
+    for line in source:
+        pending = pending or line.startswith("@given")
+        found = re.match(r"def (test_\w+)\(", line)
+        if found:
+            if pending:
+                names.append(found.group(1))
+            pending = False
+    return names
+
+
+def soak_one(name: str, examples: int) -> dict:
+    """Run one property with ``examples`` examples; its record (see the module docstring)."""
+    load_before = os.getloadavg()[0]
+    started = time.perf_counter()
+    completed = subprocess.run(
+        [sys.executable, "-m", "pytest", f"{TESTS}::{name}", "-m", "slow or not slow", "-p", "no:cacheprovider",
+         "-q", "--hypothesis-show-statistics"],
+        cwd=REPOSITORY, env={**os.environ, "KDTRACE_SOAK_EXAMPLES": str(examples)}, capture_output=True, text=True)
+    seconds = time.perf_counter() - started
+    output = completed.stdout + completed.stderr
+    counts = _COUNTS.search(output)
+    generate = _SECONDS.search(output)
+    return {
+        "property": name, "examples_requested": examples, "passed": completed.returncode == 0,
+        "passing": int(counts.group(1)) if counts else None, "failing": int(counts.group(2)) if counts else None,
+        "invalid": int(counts.group(3)) if counts else None,
+        "generate_seconds": float(generate.group(1)) if generate else None, "wall_seconds": round(seconds, 1),
+        "load_before": load_before, "load_after": os.getloadavg()[0],
+        "commit": subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPOSITORY, capture_output=True,
+                                 text=True).stdout.strip(),
+        "pytest_tail": output.strip().splitlines()[-15:], **stamp({}),
+    }
+
+
+def write_table(records: list[dict], out: Path) -> Path:
+    """``OUT/README.md``: one row per soaked property."""
+    lines = ["# Soak of the KD-tree properties", "",
+             f"`.venv/bin/python scripts/soak.py`: every hypothesis property of `{TESTS}`, one pytest process each, "
+             "on an idle machine. Each example builds both trees on a drawn scene and checks its rays against the "
+             "float64 oracle and the wrong/unexplained classifier. One record per property in "
+             "[properties/](properties/).", "",
+             "| property | examples passing | failing | invalid (filtered) | seconds | load before | commit | machine |",
+             "|---|---:|---:|---:|---:|---:|---|---|"]
+    for record in records:
+        machine = record.get("machine", {})
+        lines.append(f"| `{record['property']}` | {record['passing']} | {record['failing']} | {record['invalid']} | "
+                     f"{record['wall_seconds']:.0f} | {record['load_before']:.2f} | {record['commit']} | "
+                     f"{machine.get('cpu', '?')} [{machine.get('cpu_isa', '?')}] |")
+    return atomic_write_bytes(out / "README.md", ("\n".join(lines) + "\n").encode())
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--examples", type=int, default=int(os.environ.get("KDTRACE_SOAK_EXAMPLES", "10000")))
+    parser.add_argument("-k", dest="pattern", default="", help="only properties whose name contains this")
+    parser.add_argument("--again", action="store_true", help="soak properties that already have a record")
+    parser.add_argument("--out", type=Path, default=RESULTS, help="folder of the records and table (results/soak)")
+    args = parser.parse_args(argv)
+    if args.examples < 1:
+        parser.error("--examples must be at least 1")
+    names = [name for name in properties() if args.pattern in name]
+    if not names:
+        parser.error(f"no property of {TESTS} contains {args.pattern!r}")
+    failed = 0
+    for name in names:
+        path = args.out / "properties" / f"{name}.json"
+        if path.is_file() and not args.again:
+            record = json.loads(path.read_text())
+            if record.get("examples_requested") == args.examples:
+                print(f"{name}: soaked before ({record['passing']} passing, {record['failing']} failing), skipped")
+                continue
+        print(f"{name}: {args.examples} examples ...", flush=True)
+        record = soak_one(name, args.examples)
+        atomic_write_bytes(path, json.dumps(record, indent=1).encode())
+        failed += not record["passed"]
+        print(f"{name}: {record['passing']} passing, {record['failing']} failing, {record['wall_seconds']:.0f} s",
+              flush=True)
+    records = [json.loads(p.read_text()) for p in sorted((args.out / "properties").glob("*.json"))]
+    order = {name: i for i, name in enumerate(properties())}
+    print(f"wrote {write_table(sorted(records, key=lambda r: order.get(r['property'], len(order))), args.out)}")
+    return 1 if failed else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
