@@ -63,7 +63,7 @@ from pathlib import Path
 import numpy as np
 
 import kdtrace
-from kdtrace.io import SceneError, area_weighted_vertex_normals, load_mesh
+from kdtrace.io import SceneError, area_weighted_vertex_normals, is_dir, is_file, load_mesh
 from kdtrace.scene import Camera, Material, Scene, Sky
 
 REPOSITORY_ROOT = Path(kdtrace.__file__).resolve().parents[1]
@@ -76,6 +76,8 @@ SCENES_ENV = "KDTRACE_SCENES"
 #: Radiance of the sky added to scenes that have no light at all.
 DEFAULT_SKY_RADIANCE = (1.0, 1.0, 1.0)
 MESH_SUFFIXES = (".obj", ".ply")
+#: Largest magnitude of a number in a description: scenes are float32.
+FLOAT32_MAX = float(np.finfo(np.float32).max)
 
 _TOP_KEYS = {"name", "description", "mesh", "materials", "sky", "light", "camera"}
 _MESH_KEYS = {"file", "transform", "material_override"}
@@ -108,7 +110,7 @@ def find_file(name: str | Path, search_path: Sequence[str | Path] | None = None)
     name = Path(name)
     candidates = [name] if name.is_absolute() else [folder / name for folder in scene_search_path(search_path)]
     for candidate in candidates:
-        if candidate.is_file():
+        if is_file(candidate):
             return candidate
     places = "\n  ".join(str(c) for c in candidates)
     raise SceneError(f"{name}: file not found; looked in:\n  {places}")
@@ -138,9 +140,15 @@ def default_camera(vertices: np.ndarray) -> Camera:
 def _vector(value: object, length: int, what: str, origin: str) -> tuple[float, ...]:
     if not isinstance(value, list) or len(value) != length or not all(isinstance(v, int | float) for v in value):
         raise SceneError(f"{origin}: {what} must be a list of {length} numbers, got {value!r}")
-    if not all(math.isfinite(v) for v in value):
-        raise SceneError(f"{origin}: {what} must be finite, got {value!r}")
+    if not all(math.isfinite(v) and abs(v) <= FLOAT32_MAX for v in value):
+        raise SceneError(f"{origin}: {what} must be finite (and within the float32 range), got {value!r}")
     return tuple(float(v) for v in value)
+
+
+def _number(value: object, what: str, origin: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, int | float) or not (math.isfinite(value) and abs(value) <= FLOAT32_MAX):
+        raise SceneError(f"{origin}: {what} must be a finite number, got {value!r}")
+    return float(value)
 
 
 def _check_keys(table: object, allowed: set[str], what: str, origin: str) -> dict:
@@ -162,9 +170,12 @@ def _rotation(spec: object, origin: str) -> np.ndarray:
         return matrix
     if spec.keys() == {"axis", "degrees"}:
         axis = np.array(_vector(spec["axis"], 3, "rotate.axis", origin))
-        if not np.linalg.norm(axis) > 0.0:
+        if not np.abs(axis).max() > 0.0:
             raise SceneError(f"{origin}: rotate.axis must not be zero")
-        return _axis_angle(axis / np.linalg.norm(axis), float(spec["degrees"]))
+        with np.errstate(over="ignore", under="ignore"):
+            if not 0.0 < np.linalg.norm(axis) < np.inf:
+                axis /= np.abs(axis).max()  # the norm over- or underflowed
+        return _axis_angle(axis / np.linalg.norm(axis), _number(spec["degrees"], "rotate.degrees", origin))
     raise SceneError(f"{origin}: transform.rotate needs either 'axis' and 'degrees', or 'euler'")
 
 
@@ -186,9 +197,16 @@ def _transformed(scene: Scene, spec: object, origin: str) -> Scene:
     rotation = _rotation(spec["rotate"], origin) if "rotate" in spec else np.eye(3)
     translate = np.array(_vector(spec.get("translate", [0, 0, 0]), 3, "transform.translate", origin))
     vertices = (scene.vertices.astype(np.float64) * scale) @ rotation.T + translate
+    if not np.all(np.abs(vertices) <= FLOAT32_MAX):
+        raise SceneError(f"{origin}: transform moves vertices beyond the float32 range (scale {scale.tolist()}, "
+                         f"translate {translate.tolist()})")
     normals = None
     if scene.normals is not None:
-        normals = (scene.normals.astype(np.float64) / scale) @ rotation.T
+        with np.errstate(over="ignore"):
+            normals = scene.normals.astype(np.float64) / scale
+        if not np.all(np.isfinite(normals)):  # a tiny scale: the same directions without the overflow
+            normals = scene.normals.astype(np.float64) * (np.abs(scale).min() / scale)
+        normals = normals @ rotation.T
         normals /= np.linalg.norm(normals, axis=1, keepdims=True)
     triangles = scene.triangles[:, [0, 2, 1]] if np.prod(scale) < 0 else scene.triangles  # mirrored: keep CCW front
     return dataclasses.replace(scene, vertices=vertices, triangles=triangles, normals=normals)
@@ -209,8 +227,8 @@ def _material_fields(entry: object, name: str, origin: str) -> dict[str, object]
     if "emission" in fields and min(fields["emission"]) < 0.0:
         raise SceneError(f"{origin}: [materials.{name}] emission must not be negative")
     if "ior" in entry:
-        if not isinstance(entry["ior"], int | float) or not entry["ior"] > 0.0:
-            raise SceneError(f"{origin}: [materials.{name}] ior must be a positive number")
+        if not isinstance(entry["ior"], int | float) or not 0.0 < entry["ior"] <= FLOAT32_MAX:
+            raise SceneError(f"{origin}: [materials.{name}] ior must be a positive finite number")
         fields["ior"] = float(entry["ior"])
     return fields
 
@@ -293,12 +311,18 @@ def _finish(scene: Scene, cameras: list[Camera], sky: Sky | None) -> Scene:
 def _load_description(path: Path, search_path: Sequence[str | Path] | None, use_cache: bool) -> Scene:
     origin = str(path)
     try:
-        with open(path, "rb") as handle:
-            description = tomllib.load(handle)
+        data = path.read_bytes()
     except OSError as error:
         raise SceneError(f"{path}: cannot read scene description ({error.strerror or error})") from None
+    try:
+        description = tomllib.loads(data.decode("utf-8-sig"))  # a byte order mark is dropped
+    except UnicodeDecodeError as error:
+        line = data[: error.start].count(b"\n") + 1
+        raise SceneError(f"{path}:{line}: invalid TOML (not UTF-8: {error.reason} at byte {error.start})") from None
     except tomllib.TOMLDecodeError as error:
         raise SceneError(f"{path}: invalid TOML ({error})") from None
+    except RecursionError:
+        raise SceneError(f"{path}: invalid TOML (arrays or tables nested too deeply)") from None
     _check_keys(description, _TOP_KEYS, "the scene description", origin)
     meshes = description.get("mesh")
     if not isinstance(meshes, list) or not meshes:
@@ -319,7 +343,7 @@ def _load_description(path: Path, search_path: Sequence[str | Path] | None, use_
             part = _transformed(part, entry["transform"], f"{origin} [[mesh]] {number}")
         override = entry.get("material_override")
         if override is not None:
-            if override not in overrides:
+            if not isinstance(override, str) or override not in overrides:
                 raise SceneError(f"{path}: [[mesh]] {number} material_override {override!r} is not defined in [materials]")
             used_overrides.add(override)
             material = Material(override, **overrides[override])
@@ -392,10 +416,10 @@ def load_scene(
         mesh = load_mesh(find_file(path, search_path), use_cache=use_cache)
         return _finish(mesh, [], None)
     description = SCENES_DIRECTORY / f"{name_or_path}.toml"
-    if description.is_file():
+    if is_file(description):
         return _load_description(description, search_path, use_cache)
     candidates = [path] if path.is_absolute() else [folder / path for folder in scene_search_path(search_path)]
-    folder = next((c for c in candidates if c.is_dir()), None)
+    folder = next((c for c in candidates if is_dir(c)), None)
     if folder is not None:
         raise SceneError(_directory_message(path, folder))
     raise SceneError(f"unknown scene {str(name_or_path)!r}; available: {', '.join(list_scenes())}")

@@ -1,4 +1,4 @@
-"""Hypothesis strategies and ray makers for the KD-tree stress tests.
+"""Hypothesis strategies: scenes and rays for the KD-tree stress tests, damaged files for the readers.
 
 Scenes are drawn as *parameters* (kind, size, seed, axis permutation, scale, offset,
 duplicates), not as raw arrays, so hypothesis shrinks them to readable cases and a
@@ -6,11 +6,21 @@ failure prints everything needed to rebuild the scene (``StressScene.params``).
 Rays are made with NumPy from a drawn seed by :func:`make_rays`, aimed at the places
 where a KD-tree's floating-point decisions are made: split planes, vertices, edges,
 axis-parallel directions (with signed zeros) and planar triangles.
+
+For the reader fuzz tests (``tests/test_fuzz_readers.py``), :data:`mutations` damages
+a file's bytes (:func:`mutate`: byte flips, truncation, odd numbers and bytes,
+repeated chunks, line shuffles, re-encodings), and :func:`obj_files` and
+:func:`ply_files` write files from a small grammar of valid and nearly valid lines.
 """
 
 from __future__ import annotations
 
+import os
+import re
+import struct
+
 import numpy as np
+from hypothesis import HealthCheck, settings
 from hypothesis import strategies as st
 
 from kdtrace import procedural
@@ -354,3 +364,297 @@ def make_rays(kind: str, scene: Scene, tree, n: int, seed: int) -> tuple[np.ndar
     dead = np.flatnonzero(~directions.any(axis=1))
     directions[dead, rng.integers(0, 3, size=len(dead))] = np.where(rng.random(len(dead)) < 0.5, -1.0, 1.0)
     return origins, directions
+
+
+# ------------------------------------------------------------------ reader fuzzing
+#: Examples per fuzz property in a soak (``KDTRACE_FUZZ_EXAMPLES``); 0 in the default run.
+FUZZ_SOAK_EXAMPLES = int(os.environ.get("KDTRACE_FUZZ_EXAMPLES", "0"))
+#: Examples per fuzz property in the default run.
+FUZZ_DEFAULT_EXAMPLES = 150
+
+settings.register_profile(
+    "kdtrace-fuzz",
+    deadline=5000,  # ms; generous on a loaded 2-core machine, the tests' hang guard is the hard bound
+    derandomize=not FUZZ_SOAK_EXAMPLES,  # the default run is reproducible, a soak explores
+    database=None,
+    print_blob=True,
+    suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large, HealthCheck.filter_too_much],
+)
+
+
+def fuzz(examples: int = FUZZ_DEFAULT_EXAMPLES) -> settings:
+    """The ``kdtrace-fuzz`` settings profile with ``examples`` examples (``KDTRACE_FUZZ_EXAMPLES`` in a soak)."""
+    return settings(settings.get_profile("kdtrace-fuzz"), max_examples=FUZZ_SOAK_EXAMPLES or examples)
+
+
+#: Number-like tokens that readers get wrong: NaN/inf spellings, values beyond float32 /
+#: float64, indices beyond int32 / int64 / uint32, negative and zero indices, and tokens
+#: Python parses and C does not (or the reverse).
+ODD_NUMBERS = (
+    b"nan", b"NaN", b"-nan", b"inf", b"-inf", b"Infinity", b"1e39", b"-1e39", b"1e309", b"-1e309", b"1e-320",
+    b"0", b"-0", b"-1", b"-2", b"-7", b"1", b"2", b"255", b"256", b"-129", b"65536",
+    b"2147483647", b"2147483648", b"-2147483649", b"4294967295", b"4294967296", b"4000000000",
+    b"9223372036854775807", b"9223372036854775808", b"-9223372036854775809", b"99999999999999999999999",
+    b"1_0", b"+1", b"0x1F", b"1.5", b"1e3", b"--1", b".", b"",
+)  # fmt: skip
+#: Byte sequences of odd encodings and separators.
+ODD_BYTES = (
+    b"\x00", b"\xff", b"\xff\xfe", b"\xfe\xff", b"\xef\xbb\xbf", b"\xc3\xa9", b"\xe9", b"\xed\xa0\x80", b"\xc3",
+    b"\r", b"\r\n", b"\n", b"\t", b" ", b"/", b"//", b"///", b"#", b"\\", b"\\ ", b'"', b"'", b"[", b"]", b"{", b"}",
+    b"=", b",", b"\n[[mesh]]\n", b"\nf 1 2 3\n", b"\nend_header\n", b"\nelement vertex 4000000000\n",
+)  # fmt: skip
+#: Whole-file re-encodings: an encoding, a byte order mark or other line ends.
+ENCODINGS = ("latin-1", "utf-8-sig", "utf-16", "utf-16-le", "crlf", "cr", "invalid-utf-8")
+_NUMBER = re.compile(rb"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?")
+
+
+def reencode(data: bytes, encoding: str) -> bytes:
+    """``data`` (UTF-8 text) re-encoded as one of :data:`ENCODINGS`."""
+    if encoding == "crlf":
+        return data.replace(b"\r\n", b"\n").replace(b"\n", b"\r\n")
+    if encoding == "cr":
+        return data.replace(b"\r\n", b"\n").replace(b"\n", b"\r")
+    if encoding == "invalid-utf-8":
+        return data.replace(b" ", b" \xff", 1)
+    text = data.decode("utf-8", "replace")
+    if encoding == "latin-1":
+        return text.replace(" ", " \u00e9", 1).encode("latin-1", "replace")
+    return text.encode(encoding)
+
+
+def mutate(data: bytes, mutations: list[tuple]) -> bytes:
+    """``data`` after each of ``mutations`` (as drawn by :func:`mutations`), in order.
+
+    Positions are taken modulo the current length, so every drawn mutation applies to
+    every file and hypothesis shrinks positions towards the start of the file.
+    """
+    for kind, *args in mutations:
+        n = len(data)
+        if kind == "flip":
+            position, mask = args
+            if n:
+                position %= n
+                data = data[:position] + bytes([data[position] ^ mask]) + data[position + 1 :]
+        elif kind == "truncate":
+            data = data[: args[0] % (n + 1)]
+        elif kind == "insert":
+            position, token = args
+            position %= n + 1
+            data = data[:position] + token + data[position:]
+        elif kind == "number":
+            index, token = args
+            matches = list(_NUMBER.finditer(data))
+            if matches:
+                match = matches[index % len(matches)]
+                data = data[: match.start()] + token + data[match.end() :]
+        elif kind == "repeat":
+            position, length, times = args
+            position %= n + 1
+            chunk = data[position : position + length]
+            data = data[:position] + chunk * times + data[position:]
+        elif kind in ("delete_line", "duplicate_line", "swap_lines"):
+            lines = data.split(b"\n")
+            i, j = (a % len(lines) for a in args)
+            if kind == "delete_line":
+                del lines[i]
+            elif kind == "duplicate_line":
+                lines.insert(i, lines[i])
+            else:
+                lines[i], lines[j] = lines[j], lines[i]
+            data = b"\n".join(lines)
+        elif kind == "encode":
+            data = reencode(data, args[0])
+        else:
+            raise ValueError(f"unknown mutation {kind!r}")
+    return data
+
+
+_positions = st.integers(0, 2**20)
+_one_mutation = st.one_of(
+    st.tuples(st.just("flip"), _positions, st.sampled_from([1, 2, 4, 8, 16, 32, 64, 128, 255])),
+    st.tuples(st.just("truncate"), _positions),
+    st.tuples(st.just("insert"), _positions, st.sampled_from(ODD_NUMBERS + ODD_BYTES)),
+    st.tuples(st.just("number"), _positions, st.sampled_from(ODD_NUMBERS)),
+    st.tuples(st.just("number"), _positions, st.sampled_from(ODD_NUMBERS)),
+    st.tuples(st.just("repeat"), _positions, st.integers(1, 64), st.integers(2, 40)),
+    st.tuples(st.sampled_from(["delete_line", "duplicate_line", "swap_lines"]), _positions, _positions),
+    st.tuples(st.just("encode"), st.sampled_from(ENCODINGS)),
+)
+#: One to four mutations (see :func:`mutate`).
+mutations = st.lists(_one_mutation, min_size=1, max_size=4)
+
+
+# OBJ grammar: valid and nearly valid lines.
+_obj_numbers = st.integers(0, 9).flatmap(lambda k: st.sampled_from([token.decode() for token in ODD_NUMBERS]) if k == 0 else st.one_of(
+    st.floats(-1e3, 1e3, allow_nan=False, width=32).map(lambda x: repr(float(x))), st.integers(-5, 5).map(str)))
+_obj_indices = st.integers(0, 9).flatmap(lambda k: st.sampled_from([0, 2**31, -(2**31) - 1, 2**63, -(2**63) - 1, 10**20]) if k == 0
+                                         else st.one_of(st.integers(1, 4), st.integers(-4, -1), st.integers(-8, 8)))
+_blank = st.sampled_from([" ", "  ", "\t", " \t "])
+
+
+@st.composite
+def _obj_corner(draw, form: str) -> str:
+    v = draw(_obj_indices)
+    if form == "v":
+        return str(v)
+    vt, vn = draw(_obj_indices), draw(_obj_indices)
+    return {"v/vt": f"{v}/{vt}", "v//vn": f"{v}//{vn}", "v/vt/vn": f"{v}/{vt}/{vn}", "v/": f"{v}/", "v//": f"{v}//"}[form]
+
+
+_valid_obj_lines = st.one_of(
+    st.tuples(st.integers(-4, 4), st.integers(-4, 4), st.integers(-4, 4)).map(lambda v: "v {} {} {}".format(*v)),
+    st.lists(st.integers(1, 4), min_size=3, max_size=5).map(lambda f: "f " + " ".join(map(str, f))),
+    st.lists(st.integers(-4, -1), min_size=3, max_size=4).map(lambda f: "f " + " ".join(f"{i}//1" for i in f)),
+    st.sampled_from(["vn 0 0 1", "vt 0.5 0.5", "usemtl white", "usemtl light", "usemtl red", "mtllib lib.mtl", "g part", "# note", ""]),
+)
+
+
+@st.composite
+def _obj_line(draw) -> str:
+    kind = draw(st.sampled_from(["v", "v", "v", "vt", "vn", "f", "f", "f", "usemtl", "mtllib", "group", "comment", "blank", "odd"]))
+    blank = draw(_blank)
+    if kind in ("v", "vt", "vn"):
+        usual = st.sampled_from({"v": [3, 4, 6], "vt": [1, 2, 3], "vn": [3]}[kind])
+        count = draw(st.integers(0, 7) if draw(st.integers(0, 9)) == 0 else usual)
+        return kind + blank + blank.join(draw(_obj_numbers) for _ in range(count))
+    if kind == "f":
+        forms = ["v", "v/vt", "v//vn", "v/vt/vn"]
+        form = draw(st.sampled_from(forms + ["v/", "v//"]))
+        count = draw(st.integers(1, 6))
+        corners = [draw(_obj_corner(form if draw(st.integers(0, 19)) else draw(st.sampled_from(forms)))) for _ in range(count)]
+        return "f" + blank + blank.join(corners)
+    if kind == "usemtl":
+        return "usemtl" + blank + draw(st.sampled_from(["", "white", "light", "red", "caf\u00e9", "a b"]))
+    if kind == "mtllib":
+        return "mtllib" + blank + draw(st.sampled_from(["", "lib.mtl", "missing.mtl", "lib.mtl lib.mtl", "my\\ lib.mtl", ".", "/"]))
+    if kind == "group":
+        return draw(st.sampled_from(["o thing", "g a b", "s 1", "s off", "l 1 2", "p 1"]))
+    if kind == "comment":
+        return "# " + draw(st.text(max_size=8))
+    if kind == "blank":
+        return draw(st.sampled_from(["", " ", "\t"]))
+    return draw(st.sampled_from(["curv 0 1", "vp 0.5", "f", "v", "\u00e9", "\x00", "cstype bspline", "usemtl\t"]))
+
+
+#: MTL library written beside grammar-made OBJ files (as ``lib.mtl``).
+GRAMMAR_MTL = b"newmtl white\nKd 0.8 0.8 0.8\nnewmtl light\nKd 0 0 0\nKe 10 10 10\nnewmtl red\nKd 0.9 0.1 0.1\n"
+
+
+@st.composite
+def obj_files(draw) -> bytes:
+    """An OBJ file from a small grammar: mostly valid lines, some nearly valid ones.
+
+    Starts with a few valid vertices so that most drawn faces index something.
+    """
+    valid = draw(st.booleans())  # only valid lines (vertex indices may still be out of range)
+    head = ["v 0 0 0", "v 1 0 0", "v 0 1 0", "v 1 1 0", "vn 0 0 1"][: 5 if valid else draw(st.integers(0, 4))]
+    lines = head + draw(st.lists(_valid_obj_lines if valid else _obj_line(), min_size=1, max_size=24))
+    newline = draw(st.sampled_from(["\n", "\n", "\r\n", "\r"]))
+    return newline.join(lines).encode("utf-8", "surrogateescape") + newline.encode() * draw(st.integers(0, 1))
+
+
+# PLY grammar: headers with any element count, property type, list type and format, and
+# bodies of the right or a wrong length.
+_PLY_TYPES = ("char", "uchar", "short", "ushort", "int", "uint", "float", "double", "int8", "uint8", "int32", "uint32", "float32")
+_PLY_STRUCT = {"char": "b", "uchar": "B", "short": "h", "ushort": "H", "int": "i", "uint": "I", "float": "f", "double": "d",
+               "int8": "b", "uint8": "B", "int32": "i", "uint32": "I", "float32": "f"}  # fmt: skip
+_ply_counts = st.one_of(st.integers(0, 6), st.sampled_from([4000000000, 2**31, 2**32 - 1, 10**6]))
+
+
+@st.composite
+def _ply_element(draw, name: str) -> tuple[str, int, list[tuple]]:
+    count = draw(st.integers(3, 6) if draw(st.integers(0, 2)) else _ply_counts)
+    if name == "vertex":
+        names = ["x", "y", "z"] + draw(st.sampled_from([[], [], ["nx", "ny", "nz"], ["u", "v"], ["s", "t"], ["x"]]))
+        properties = [(draw(st.sampled_from(["float", "float", "double", "uchar", "int"])), n) for n in names]
+    elif name == "face":
+        properties = [("list", draw(st.sampled_from(["uchar", "uchar", "int", "char", "uint", "float"])),
+                       draw(st.sampled_from(["int", "int", "uint", "uchar", "short", "float"])),
+                       draw(st.sampled_from(["vertex_indices", "vertex_indices", "vertex_index"])))]
+        if draw(st.booleans()):
+            properties.append((draw(st.sampled_from(["int", "uint", "uchar", "float"])), "material_id"))
+    else:
+        properties = [(draw(st.sampled_from(_PLY_TYPES)), f"p{k}") for k in range(draw(st.integers(0, 2)))]
+        if draw(st.booleans()):
+            properties.append(("list", "uchar", draw(st.sampled_from(_PLY_TYPES)), "items"))
+    return name, count, properties
+
+
+def _ply_value(draw, type_name: str, index_like: bool) -> float | int:
+    if draw(st.integers(0, 3)):  # mostly a usable value
+        return draw(st.integers(0, 2)) if index_like or type_name not in ("float", "double", "float32") else draw(
+            st.floats(-10, 10, width=32))
+    if type_name in ("float", "double", "float32"):
+        special = st.sampled_from([float("nan"), float("inf"), -float("inf"), 1e39, -0.0])
+        return draw(st.one_of(st.integers(-2, 6).map(float), st.floats(-10, 10, width=32), special) if index_like
+                    else st.one_of(st.floats(-10, 10, width=32), special))
+    code = _PLY_STRUCT[type_name]
+    lo, hi = {"b": (-128, 127), "B": (0, 255), "h": (-(2**15), 2**15 - 1), "H": (0, 2**16 - 1),
+              "i": (-(2**31), 2**31 - 1), "I": (0, 2**32 - 1)}[code]  # fmt: skip
+    return draw(st.one_of(st.integers(max(lo, -2), min(hi, 6)), st.sampled_from([lo, hi])))
+
+
+def _packable(code: str, value: float | int) -> float | int:
+    """``value`` as ``struct`` packs it with ``code``: an int, or a float beyond float32 as infinity."""
+    if code not in "fd":
+        return int(value)
+    return float(np.copysign(np.inf, value)) if code == "f" and np.isfinite(value) and abs(value) > 3.4e38 else value
+
+
+@st.composite
+def ply_files(draw) -> bytes:
+    """A PLY file from a small grammar: header, body matching it (mostly), then damage.
+
+    Element counts are small, or huge (``element vertex 4000000000``) with a small body;
+    list lengths mostly 3 or 4, sometimes 0, 255 or negative; the body may lose or gain
+    bytes at the end (binary formats: wrong lengths).
+    """
+    file_format = draw(st.sampled_from(["ascii", "binary_little_endian", "binary_big_endian", "binary_little_endian"]))
+    if draw(st.booleans()):  # a valid file
+        vertices = draw(st.lists(st.tuples(*[st.floats(-10, 10, width=32)] * 3), min_size=3, max_size=6))
+        faces = draw(st.lists(st.lists(st.integers(0, len(vertices) - 1), min_size=3, max_size=5), min_size=1, max_size=6))
+        elements = [("vertex", len(vertices), [("float", "x"), ("float", "y"), ("float", "z")]),
+                    ("face", len(faces), [("list", "uchar", "int", "vertex_indices")])]
+        records = [[("float", c) for c in v] for v in vertices] + [[("uchar", len(f))] + [("int", i) for i in f] for f in faces]
+        return _ply_bytes(file_format, elements, records)
+    elements = [draw(_ply_element("vertex"))]
+    if draw(st.integers(0, 7)):
+        elements.append(draw(_ply_element("face")))
+    if draw(st.integers(0, 3)) == 0:
+        elements.insert(draw(st.integers(0, len(elements))), draw(_ply_element(draw(st.sampled_from(["edge", "vertex", "face"])))))
+    records: list[list[tuple[str, float | int]]] = []
+    for _name, count, properties in elements:
+        for _ in range(count if count <= 6 and draw(st.integers(0, 3)) else min(count, draw(st.integers(0, 6)))):
+            record: list[tuple[str, float | int]] = []
+            for prop in properties:
+                if prop[0] == "list":
+                    length = draw(st.sampled_from([3, 3, 3, 3, 3, 3, 4, 4, 0, 1, 2, 255, -1]))
+                    if length < 0 and _PLY_STRUCT[prop[1]] in "BHI":
+                        length = 255
+                    elif _PLY_STRUCT[prop[1]] == "b":
+                        length = min(length, 127)
+                    record.append((prop[1], length))
+                    record += [(prop[2], _ply_value(draw, prop[2], True)) for _ in range(min(max(length, 0), 8))]
+                else:
+                    record.append((prop[0], _ply_value(draw, prop[0], prop[1] == "material_id")))
+            records.append(record)
+    data = _ply_bytes(file_format, elements, records)
+    damage = draw(st.integers(-8, 8)) if draw(st.integers(0, 2)) == 0 else 0
+    return data[: len(data) + damage] if damage < 0 else data + bytes(draw(st.binary(min_size=damage, max_size=damage)))
+
+
+def _ply_bytes(file_format: str, elements: list[tuple], records: list[list[tuple]]) -> bytes:
+    """A PLY file of ``elements`` (name, count, properties) whose body holds ``records`` of (type, value)."""
+    header = ["ply", f"format {file_format} 1.0", "comment fuzz"]
+    for name, count, properties in elements:
+        header.append(f"element {name} {count}")
+        header += [" ".join(("property", *p)) for p in properties]
+    header.append("end_header")
+    order = "<" if file_format == "binary_little_endian" else ">"
+    data = "\n".join(header).encode() + b"\n"
+    if file_format == "ascii":
+        data += "".join(" ".join(repr(v) if isinstance(v, float) else str(v) for _, v in record) + "\n"
+                        for record in records).encode()
+    else:
+        data += b"".join(struct.pack(order + _PLY_STRUCT[t], _packable(_PLY_STRUCT[t], v)) for record in records for t, v in record)
+    return data

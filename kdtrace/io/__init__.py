@@ -32,9 +32,13 @@ from kdtrace.cache import atomic_write, cache_root, compute_once
 from kdtrace.scene import Material, Scene
 
 #: Bumped whenever a loader's output changes, so stale cache entries are never read.
-LOADER_VERSION = "kdtrace-io-1"
+LOADER_VERSION = "kdtrace-io-2"
 
 #: Environment variable overriding the cache directory.
+
+
+#: Largest finite float32: vertex positions and texture coordinates must lie within it.
+FLOAT32_MAX = float(np.finfo(np.float32).max)
 
 
 class SceneError(ValueError):
@@ -56,6 +60,36 @@ def read_source(path: str | Path) -> bytes:
         raise SceneError(f"{path}: is a directory, not a file") from None
     except OSError as error:
         raise SceneError(f"{path}: cannot read file ({error.strerror or error})") from None
+
+
+def is_file(path: Path) -> bool:
+    """``path.is_file()``, but False where the system cannot look the name up (too long a name)."""
+    try:
+        return path.is_file()
+    except (OSError, ValueError):
+        return False
+
+
+def is_dir(path: Path) -> bool:
+    """``path.is_dir()``, but False where the system cannot look the name up (too long a name)."""
+    try:
+        return path.is_dir()
+    except (OSError, ValueError):
+        return False
+
+
+def decode_text(data: bytes) -> str:
+    """Text of an OBJ or MTL file's bytes, with LF line ends.
+
+    UTF-8, a leading byte order mark dropped; UTF-16 after a UTF-16 byte order mark.
+    Bytes that are not UTF-8 (Latin-1 names) are kept as surrogate escapes, so a name
+    still finds the file it names.
+    """
+    if data.startswith((b"\xff\xfe", b"\xfe\xff")):
+        text = data.decode("utf-16", "replace")
+    else:
+        text = data.decode("utf-8", "surrogateescape").removeprefix("\ufeff")
+    return text.replace("\r\n", "\n").replace("\r", "\n")
 
 
 class WarningLog:
@@ -131,6 +165,9 @@ def repair_normals(vertices: np.ndarray, triangles: np.ndarray, normals: np.ndar
     by the area-weighted geometric vertex normal (:func:`area_weighted_vertex_normals`).
     """
     normals = np.asarray(normals, dtype=np.float64)
+    largest = np.abs(normals).max(axis=1, keepdims=True) if len(normals) else np.zeros((0, 1))
+    extreme = (largest > 1e150) | ((largest > 0.0) & (largest < 1e-150))  # whose norm would overflow or underflow
+    normals = np.divide(normals, largest, out=normals.copy(), where=extreme)
     lengths = np.linalg.norm(normals, axis=1)
     replace = missing | ~(lengths > 0.0)
     result = np.empty_like(normals)

@@ -26,7 +26,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from kdtrace.io import SceneError, WarningLog, read_source
+from kdtrace.io import SceneError, WarningLog, decode_text, read_source
 from kdtrace.scene import Material
 
 #: A specular colour at least this large (max component) with a sharp lobe is a mirror.
@@ -91,7 +91,8 @@ def parse_mtl(data: bytes, path: Path, log: WarningLog) -> dict[str, Material]:
     Parameters
     ----------
     data : bytes
-        File content (any of LF, CRLF, CR line ends).
+        File content (any of LF, CRLF, CR line ends; UTF-8 or, after a byte order mark,
+        UTF-16; see :func:`kdtrace.io.decode_text`).
     path : Path
         The file, for messages and to resolve ``map_Kd``.
     log : WarningLog
@@ -102,7 +103,7 @@ def parse_mtl(data: bytes, path: Path, log: WarningLog) -> dict[str, Material]:
     SceneError
         Malformed value, a key before the first ``newmtl``, a duplicate material name.
     """
-    text = data.decode("utf-8", "surrogateescape").replace("\r\n", "\n").replace("\r", "\n")
+    text = decode_text(data)
     materials: dict[str, Material] = {}
     name: str | None = None
     start = 0

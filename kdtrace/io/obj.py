@@ -4,7 +4,8 @@ Supported: ``v`` (x y z, an optional w or r g b ignored), ``vt`` (u [v [w]]; w i
 a missing v is 0), ``vn``, faces ``f`` in the forms ``v``, ``v/vt``, ``v//vn`` and
 ``v/vt/vn`` (one form per face), negative indices relative to the elements read so far,
 polygons triangulated as fans, ``usemtl``, ``mtllib`` (see below), comments (whole-line
-and trailing), blank lines, and LF, CRLF or CR line ends. ``o``, ``g``, ``s``, ``l`` and
+and trailing), blank lines, LF, CRLF or CR line ends, and UTF-8 (a byte order mark is
+dropped) or UTF-16 text after a byte order mark. ``o``, ``g``, ``s``, ``l`` and
 ``p`` are ignored; other keywords warn once per file.
 
 Lenient where the data is usable, as tinyobjloader, trimesh and Blender are (each case
@@ -20,7 +21,8 @@ warns once per file, naming file and line):
   one warning counts such faces.
 
 Refused (:class:`kdtrace.io.SceneError` naming file and line): a malformed line, a NaN
-or infinite value, a vertex index out of range, a file without faces or triangles.
+or infinite value, a ``v`` or ``vt`` value beyond the float32 range, a vertex index out
+of range (indices beyond int64 count as out of range), a file without faces or triangles.
 
 Output conventions:
 
@@ -53,11 +55,14 @@ from typing import NoReturn
 import numpy as np
 
 from kdtrace.io import (
+    FLOAT32_MAX,
     SceneError,
     WarningLog,
     cache_key,
     cached_load,
+    decode_text,
     fan_triangulate,
+    is_file,
     read_source,
     repair_normals,
 )
@@ -73,6 +78,7 @@ _FORM_V, _FORM_V_VT, _FORM_V_VN, _FORM_V_VT_VN = range(4)
 _FORM_FIELDS = {_FORM_V: 1, _FORM_V_VT: 2, _FORM_V_VN: 2, _FORM_V_VT_VN: 3}
 _FORM_NAMES = {_FORM_V: "v", _FORM_V_VT: "v/vt", _FORM_V_VN: "v//vn", _FORM_V_VT_VN: "v/vt/vn"}
 _VALUE_COUNTS = {"v": (3, 4, 6), "vt": (1, 2, 3), "vn": (3,)}
+_INT64_MIN, _INT64_MAX = -(2**63), 2**63 - 1
 _MTLLIB_LINE = re.compile(rb"^[ \t]*mtllib[ \t]+([^\r\n#]*)", re.MULTILINE)
 _UNESCAPED_BLANKS = re.compile(r"(?<!\\)[ \t]+")
 
@@ -183,6 +189,9 @@ def _convert_values(found: _Lines, keyword: str, path: Path) -> np.ndarray:
     if not finite.all():
         number = found.line_numbers[keyword][int(np.flatnonzero(~finite)[0])]
         raise SceneError(f"{path}:{number}: '{keyword}' has a NaN or infinite value")
+    if keyword != "vn" and not np.all(np.abs(values) <= FLOAT32_MAX):  # kept as float32; normals are normalised first
+        number = found.line_numbers[keyword][int(np.flatnonzero(~np.all(np.abs(values) <= FLOAT32_MAX, axis=1))[0])]
+        raise SceneError(f"{path}:{number}: '{keyword}' has a value beyond the float32 range")
     return values
 
 
@@ -235,6 +244,8 @@ def _convert_faces(found: _Lines, path: Path) -> tuple[np.ndarray, np.ndarray, n
             values = np.array(pieces, dtype=np.int64).reshape(-1, fields)
         except ValueError:
             _slow_face_check(found, form, path)
+        except OverflowError:  # beyond int64: out of range whatever the file holds, so clamped
+            values = np.array([min(max(int(piece), _INT64_MIN), _INT64_MAX) for piece in pieces]).reshape(-1, fields)
         faces = np.flatnonzero(forms == form)
         corner_positions = np.repeat(first_corner[faces], counts[faces]) + (
             np.arange(len(values)) - np.repeat(np.cumsum(counts[faces]) - counts[faces], counts[faces])
@@ -376,10 +387,10 @@ def _mtllib_files(path: Path, rest: str, number: int, log: WarningLog) -> list[P
     readings = _mtllib_readings(rest)
     for names in readings:
         files = [path.parent / name for name in names]
-        if all(f.is_file() for f in files):
+        if all(is_file(f) for f in files):
             return files
-    found = [path.parent / name for name in readings[0] if (path.parent / name).is_file()]
-    missing = ", ".join(repr(name) for name in readings[0] if not (path.parent / name).is_file())
+    found = [path.parent / name for name in readings[0] if is_file(path.parent / name)]
+    missing = ", ".join(repr(name) for name in readings[0] if not is_file(path.parent / name))
     tried = f" (nor {readings[1][0]!r} as one name)" if len(readings) > 1 and not found else ""
     log.warn(
         f"mtllib {missing}",
@@ -408,8 +419,7 @@ def parse_obj(data: bytes, path: Path, log: WarningLog | None = None) -> Scene:
         faces; the message names the file and line.
     """
     log = log if log is not None else WarningLog()
-    text = data.decode("utf-8", "surrogateescape").replace("\r\n", "\n").replace("\r", "\n")
-    found = _scan(text, path, log)
+    found = _scan(decode_text(data), path, log)
     if not found.face_line:
         raise SceneError(f"{path}: the mesh has no faces")
     if found.short_faces:
@@ -490,9 +500,9 @@ def load_obj(path: str | Path, *, use_cache: bool = True) -> Scene:
     path = Path(path)
     data = read_source(path)
     sources: list[tuple[str, bytes | None]] = [("path", str(path.resolve()).encode()), ("obj", data)]
-    for match in _MTLLIB_LINE.finditer(data):
+    for match in _MTLLIB_LINE.finditer(decode_text(data).encode("utf-8", "surrogateescape")):
         for names in _mtllib_readings(match.group(1).decode("utf-8", "surrogateescape")):
             for name in names:
                 candidate = path.parent / name
-                sources.append((f"mtl {name}", candidate.read_bytes() if candidate.is_file() else None))
+                sources.append((f"mtl {name}", candidate.read_bytes() if is_file(candidate) else None))
     return cached_load(cache_key(sources), lambda log: parse_obj(data, path, log), use_cache)

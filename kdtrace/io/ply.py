@@ -13,7 +13,15 @@ of ``{"id", "name", "mean_texture_linear_rgb" or "mtl_Kd"}``, as the Crytek Spon
 it), material ``id`` becomes a diffuse material of that flat colour: the mean linear
 colour of its texture when known (the textures themselves are not used), else ``mtl_Kd``.
 Without a side-car, every material id ``k`` in ``0 .. max`` gets a default diffuse
-material ``"material_k"`` (one ``"default"`` material without ``material_id``).
+material ``"material_k"`` (one ``"default"`` material without ``material_id``). Ids far
+beyond the number of faces are renumbered (see :func:`_materials`).
+
+Refused (:class:`kdtrace.io.SceneError` naming the file, and the line in the header and
+in ascii records): a malformed header, an element or property named twice, a body
+shorter than its header says (so an enormous element count is refused before anything
+is allocated), a negative or fractional list length, an integer property whose ascii
+value is not a whole number of its type, a coordinate that is NaN, infinite or beyond
+the float32 range, a face with fewer than 3 vertices or a vertex index out of range.
 
 Binary faces are read in one block when every face has the same corner count (the
 common all-triangle case); otherwise face by face.
@@ -26,7 +34,17 @@ from pathlib import Path
 
 import numpy as np
 
-from kdtrace.io import SceneError, WarningLog, cache_key, cached_load, fan_triangulate, read_source, repair_normals
+from kdtrace.io import (
+    FLOAT32_MAX,
+    SceneError,
+    WarningLog,
+    cache_key,
+    cached_load,
+    fan_triangulate,
+    is_file,
+    read_source,
+    repair_normals,
+)
 from kdtrace.scene import Material, Scene
 
 _TYPES = {
@@ -40,6 +58,8 @@ _TEXCOORD_NAMES = (("s", "t"), ("u", "v"), ("texture_u", "texture_v"))
 _FACE_LIST_NAMES = ("vertex_indices", "vertex_index")
 #: Side-car material file next to ``name.ply``: ``name`` + this suffix.
 MATERIALS_SUFFIX = "_materials.json"
+#: Material ids below this always get a table entry each, used or not (see :func:`_materials`).
+DENSE_MATERIAL_IDS = 1024
 
 
 class _Property:
@@ -78,16 +98,21 @@ def _parse_header(data: bytes, path: Path) -> tuple[str, list[_Element], int]:
         elif words[0] == "element":
             if len(words) != 3 or not words[2].isdigit():
                 raise SceneError(f"{where}: malformed element line {line.strip()!r}")
+            if any(e.name == words[1] for e in elements):
+                raise SceneError(f"{where}: element {words[1]!r} appears twice")
             elements.append(_Element(words[1], int(words[2])))
         elif words[0] == "property":
             if not elements:
                 raise SceneError(f"{where}: property before any element")
             if len(words) == 3 and words[1] in _TYPES:
-                elements[-1].properties.append(_Property(words[2], _TYPES[words[1]]))
+                prop = _Property(words[2], _TYPES[words[1]])
             elif len(words) == 5 and words[1] == "list" and words[2] in _TYPES and words[3] in _TYPES:
-                elements[-1].properties.append(_Property(words[4], _TYPES[words[3]], _TYPES[words[2]]))
+                prop = _Property(words[4], _TYPES[words[3]], _TYPES[words[2]])
             else:
                 raise SceneError(f"{where}: malformed property line {line.strip()!r}")
+            if any(p.name == prop.name for p in elements[-1].properties):
+                raise SceneError(f"{where}: property {prop.name!r} appears twice in element {elements[-1].name!r}")
+            elements[-1].properties.append(prop)
         else:
             raise SceneError(f"{where}: unknown PLY header keyword {words[0]!r}")
     if file_format is None:
@@ -118,7 +143,7 @@ def _read_binary(data: bytes, offset: int, element: _Element, order: str, path: 
         if offset + head + np.dtype(lists[0].count_dtype).itemsize > len(data):
             raise SceneError(f"{path}: file ends inside element {element.name!r}")
         list_length = int(np.frombuffer(data, order + lists[0].count_dtype, 1, offset + head)[0])
-    if len(lists) <= 1:
+    if len(lists) <= 1 and 0 <= list_length <= len(data):
         dtype = scalar_dtype(element.properties, list_length)
         if offset + dtype.itemsize * element.count <= len(data):
             records = np.frombuffer(data, dtype, element.count, offset)
@@ -128,7 +153,7 @@ def _read_binary(data: bytes, offset: int, element: _Element, order: str, path: 
             raise SceneError(f"{path}: file ends inside element {element.name!r}")
     # Variable-length lists: record by record.
     columns: dict[str, list] = {p.name: [] for p in element.properties}
-    for _ in range(element.count):
+    for row in range(element.count):
         for prop in element.properties:
             dtype = np.dtype(order + (prop.count_dtype or prop.dtype))
             if offset + dtype.itemsize > len(data):
@@ -136,6 +161,8 @@ def _read_binary(data: bytes, offset: int, element: _Element, order: str, path: 
             value = np.frombuffer(data, dtype, 1, offset)[0]
             offset += dtype.itemsize
             if prop.is_list:
+                if not (np.isfinite(value) and value >= 0 and value == int(value)):
+                    raise SceneError(f"{path}: element {element.name!r} record {row}: list {prop.name!r} has length {value}")
                 items = np.dtype(order + prop.dtype)
                 if offset + items.itemsize * int(value) > len(data):
                     raise SceneError(f"{path}: file ends inside element {element.name!r}")
@@ -165,12 +192,13 @@ def _read_ascii(lines: list[str], start: int, element: _Element, path: Path, fir
                     values = words[position + 1 : position + 1 + count]
                     if len(values) != count:
                         raise IndexError
-                    columns[prop.name].append(np.array(values, dtype=prop.dtype))
+                    with np.errstate(over="ignore"):  # beyond float32: inf, refused where it matters
+                        columns[prop.name].append(np.array(values, dtype=prop.dtype))
                     position += 1 + count
                 else:
                     columns[prop.name].append(words[position])
                     position += 1
-        except (IndexError, ValueError):
+        except (IndexError, ValueError, OverflowError):
             raise SceneError(f"{path}:{number}: malformed {element.name!r} record {lines[start + row].strip()!r}") from None
         if position != len(words):
             raise SceneError(f"{path}:{number}: {element.name!r} record has {len(words) - position} extra value(s)")
@@ -179,32 +207,88 @@ def _read_ascii(lines: list[str], start: int, element: _Element, path: Path, fir
         if prop.is_list:
             result[prop.name] = columns[prop.name]
         else:
-            try:
-                result[prop.name] = np.array(columns[prop.name], dtype=np.float64).astype(prop.dtype)
-            except ValueError:
-                raise SceneError(f"{path}: non-numeric {element.name!r} property {prop.name!r}") from None
+            result[prop.name] = _ascii_scalars(columns[prop.name], prop, element, path, first_line + start)
     return result
+
+
+def _ascii_scalars(tokens: list[str], prop: _Property, element: _Element, path: Path, first_line: int) -> np.ndarray:
+    """The values of one scalar property of an ascii element, as its type.
+
+    Float values beyond the type's range become infinite (the callers refuse those where
+    they matter); integer values must be whole and fit the type.
+
+    Raises
+    ------
+    SceneError
+        Naming the line of the first value that is not a number or does not fit.
+    """
+    dtype = np.dtype(prop.dtype)
+    try:
+        values = np.array(tokens, dtype=np.float64)
+    except ValueError:
+        row = next((i for i, token in enumerate(tokens) if not _is_number(token)), 0)
+        raise SceneError(f"{path}:{first_line + row}: non-numeric {element.name!r} property {prop.name!r} value "
+                         f"{tokens[row]!r}") from None
+    if dtype.kind == "f":
+        with np.errstate(over="ignore"):
+            return values.astype(dtype)
+    limits = np.iinfo(dtype)
+    bad = ~(np.isfinite(values) & (values == np.round(values)) & (values >= limits.min) & (values <= limits.max))
+    if bad.any():
+        row = int(np.flatnonzero(bad)[0])
+        raise SceneError(f"{path}:{first_line + row}: {element.name!r} property {prop.name!r} value {tokens[row]!r} "
+                         f"is not an integer in {limits.min}..{limits.max}")
+    return values.astype(dtype)
+
+
+def _is_number(token: str) -> bool:
+    try:
+        float(token)
+    except ValueError:
+        return False
+    return True
 
 
 def _faces(lists: object, path: Path) -> tuple[np.ndarray, np.ndarray]:
     """Flat corner indices and per-face corner counts from a list property."""
     if isinstance(lists, np.ndarray):
-        return lists.astype(np.int64).reshape(-1), np.full(len(lists), lists.shape[1], dtype=np.int64)
-    counts = np.array([len(face) for face in lists], dtype=np.int64)
+        counts = np.full(len(lists), lists.shape[1], dtype=np.int64)
+    else:
+        counts = np.array([len(face) for face in lists], dtype=np.int64)
     if np.any(counts < 3):
         bad = int(np.flatnonzero(counts < 3)[0])
         raise SceneError(f"{path}: face {bad} has {counts[bad]} vertices (a face needs at least 3)")
-    return (np.concatenate(lists).astype(np.int64) if len(lists) else np.zeros(0, np.int64)), counts
+    corners = lists.reshape(-1) if isinstance(lists, np.ndarray) else np.concatenate(lists) if len(lists) else np.zeros(0, np.int64)
+    if corners.dtype.kind == "f":  # a float index list: whole numbers only
+        whole = np.isfinite(corners) & (corners == np.round(corners))
+        if not whole.all():
+            bad = int(np.flatnonzero(~whole)[0])
+            face = int(np.searchsorted(np.cumsum(counts), bad, side="right"))
+            raise SceneError(f"{path}: face {face} has vertex index {corners[bad]}, not a whole number")
+        corners = np.clip(corners, -(2.0**62), 2.0**62)  # beyond: out of range either way
+    return corners.astype(np.int64), counts
 
 
-def _materials(path: Path, material_ids: np.ndarray | None) -> list[Material]:
-    """Material table indexed by material id (side-car colours or defaults)."""
+def _materials(path: Path, material_ids: np.ndarray | None, log: WarningLog) -> tuple[list[Material], np.ndarray | None]:
+    """Material table (side-car colours or defaults) and each face's index into it.
+
+    The table is indexed by material id, 0 .. the largest id, unless the largest id is at
+    least :data:`DENSE_MATERIAL_IDS` and the number of faces (most ids unused, as in a
+    small file with ``material_id 4000000000``): then only the ids in use get a
+    material, in increasing order, and a warning says so.
+    """
     sidecar = path.with_name(path.stem + MATERIALS_SUFFIX)
     needed = 1 if material_ids is None else int(material_ids.max()) + 1
-    if not sidecar.is_file():
+    ids = range(needed)
+    if material_ids is not None and needed > max(len(material_ids), DENSE_MATERIAL_IDS):
+        used, material_ids = np.unique(material_ids, return_inverse=True)
+        ids = used.tolist()
+        log.warn("sparse material ids", f"{path}: material ids up to {needed - 1} on {len(material_ids)} faces; "
+                 f"the {len(ids)} ids in use get materials 0..{len(ids) - 1}")
+    if not is_file(sidecar):
         if material_ids is None:
-            return [Material("default")]
-        return [Material(f"material_{k}") for k in range(needed)]
+            return [Material("default")], None
+        return [Material(f"material_{k}") for k in ids], material_ids
     try:
         entries = json.loads(read_source(sidecar))
         table: dict[int, Material] = {}
@@ -216,10 +300,10 @@ def _materials(path: Path, material_ids: np.ndarray | None) -> list[Material]:
             table[int(entry["id"])] = Material(str(entry["name"]), "diffuse", albedo)
     except (ValueError, KeyError, TypeError, AttributeError) as error:
         raise SceneError(f"{sidecar}: malformed material side-car ({error})") from None
-    missing = [k for k in range(needed) if k not in table]
+    missing = [k for k in ids if k not in table]
     if missing:
         raise SceneError(f"{sidecar}: no entry for material id(s) {missing[:10]} used by {path}")
-    return [table[k] for k in range(needed)]
+    return [table[k] for k in ids], material_ids
 
 
 def parse_ply(data: bytes, path: Path, log: WarningLog | None = None) -> Scene:
@@ -254,9 +338,9 @@ def parse_ply(data: bytes, path: Path, log: WarningLog | None = None) -> Scene:
     if face is None or not any(name in face for name in _FACE_LIST_NAMES):
         raise SceneError(f"{path}: no 'face' element with a vertex_indices list: the mesh has no faces")
     vertices = np.stack([np.asarray(vertex[axis], dtype=np.float64) for axis in "xyz"], axis=1)
-    finite = np.isfinite(vertices).all(axis=1)
+    finite = (np.abs(vertices) <= FLOAT32_MAX).all(axis=1)  # False for NaN and infinities too
     if not finite.all():
-        raise SceneError(f"{path}: vertex {int(np.flatnonzero(~finite)[0])} has a NaN or infinite coordinate")
+        raise SceneError(f"{path}: vertex {int(np.flatnonzero(~finite)[0])} has a NaN, infinite or beyond-float32 coordinate")
     corners, counts = _faces(face[next(n for n in _FACE_LIST_NAMES if n in face)], path)
     if len(counts) == 0:
         raise SceneError(f"{path}: the mesh has no faces")
@@ -268,7 +352,14 @@ def parse_ply(data: bytes, path: Path, log: WarningLog | None = None) -> Scene:
     triangles = corners[corner_triangles]
     material_ids = None
     if "material_id" in face:
-        material_ids = np.asarray(face["material_id"]).astype(np.int64)
+        material_ids = np.asarray(face["material_id"])
+        if material_ids.dtype.kind == "f":
+            whole = np.isfinite(material_ids) & (material_ids == np.round(material_ids))
+            if not whole.all():
+                raise SceneError(f"{path}: face {int(np.flatnonzero(~whole)[0])} has material_id "
+                                 f"{material_ids[~whole][0]}, not a whole number")
+            material_ids = np.clip(material_ids, -(2.0**62), 2.0**62)  # fits int64
+        material_ids = material_ids.astype(np.int64)
         if material_ids.min() < 0:
             raise SceneError(f"{path}: negative material_id {material_ids.min()}")
     normals = None
@@ -278,11 +369,12 @@ def parse_ply(data: bytes, path: Path, log: WarningLog | None = None) -> Scene:
     texcoords = None
     for u, v in _TEXCOORD_NAMES:
         if u in vertex and v in vertex:
-            texcoords = np.stack([np.asarray(vertex[u], dtype=np.float32), np.asarray(vertex[v], dtype=np.float32)], axis=1)
+            with np.errstate(over="ignore"):  # beyond float32: infinite, refused below
+                texcoords = np.stack([np.asarray(vertex[u], dtype=np.float32), np.asarray(vertex[v], dtype=np.float32)], axis=1)
             if not np.isfinite(texcoords).all():
                 raise SceneError(f"{path}: texture coordinates contain NaN or infinite values")
             break
-    materials = _materials(path, material_ids)
+    materials, material_ids = _materials(path, material_ids, log)
     return Scene(
         name=path.stem,
         vertices=vertices.astype(np.float32),
@@ -309,6 +401,6 @@ def load_ply(path: str | Path, *, use_cache: bool = True) -> Scene:
     sources = [
         ("path", str(path.resolve()).encode()),
         ("ply", data),
-        ("materials", sidecar.read_bytes() if sidecar.is_file() else None),
+        ("materials", sidecar.read_bytes() if is_file(sidecar) else None),
     ]
     return cached_load(cache_key(sources), lambda log: parse_ply(data, path, log), use_cache)
