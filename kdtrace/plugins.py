@@ -11,15 +11,17 @@ the same way in kdtrace's ``pyproject.toml`` (accelerators ``local``, ``naive``,
 
 :func:`load_accelerator` and :func:`load_denoiser` wrap what the factory returns
 so every answer is checked: a plug-in that raises, or returns the wrong shape or
-dtype, NaN, or a triangle index out of range, raises :class:`PluginError` naming
-the plug-in's spec and what it returned.
+dtype (floats must be float32 or float64), NaN, an infinite barycentric or a miss
+whose ``t`` is not ``+inf``, a triangle index out of range, or ``stats`` that are not a
+mapping, raises :class:`PluginError` naming the plug-in's spec and what it returned.
+Valid answers are handed on C-contiguous and in native byte order.
 """
 
 from __future__ import annotations
 
 import importlib
 import importlib.metadata
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from typing import Protocol, runtime_checkable
 
 import numpy as np
@@ -130,10 +132,16 @@ def _describe(value) -> str:
 
 
 def _check_array(spec: str, what: str, value, shape: tuple[int, ...], kinds: str, kind_name: str) -> np.ndarray:
-    """``value`` if it is an ndarray of ``shape`` whose dtype kind is in ``kinds``, else a PluginError."""
+    """``value`` if it is an ndarray of ``shape`` whose dtype kind is in ``kinds``, else a PluginError.
+
+    Floats must be float32 or float64. The array is handed on C-contiguous and in native
+    byte order (a copy when it was strided or big-endian).
+    """
     if not isinstance(value, np.ndarray) or value.shape != shape or value.dtype.kind not in kinds:
         raise PluginError(f"plug-in {spec!r}: {what} must be a {kind_name} array of shape {shape}, got {_describe(value)}")
-    return value
+    if value.dtype.kind == "f" and value.dtype.itemsize not in (4, 8):
+        raise PluginError(f"plug-in {spec!r}: {what} must be a float32 or float64 array, got {_describe(value)}")
+    return np.ascontiguousarray(value, dtype=value.dtype.newbyteorder("="))
 
 
 class CheckedAccelerator:
@@ -156,7 +164,10 @@ class CheckedAccelerator:
         self.spec = spec
         self.inner = inner
         self.n_triangles = n_triangles
-        self.stats = dict(getattr(inner, "stats", None) or {})
+        stats = getattr(inner, "stats", None)
+        if stats is not None and not isinstance(stats, Mapping):
+            raise PluginError(f"plug-in {spec!r}: stats must be a dict, got {type(stats).__name__}")
+        self.stats = dict(stats or {})
 
     def __repr__(self) -> str:
         return f"CheckedAccelerator({self.spec!r})"
@@ -177,12 +188,15 @@ class CheckedAccelerator:
             i = int(np.flatnonzero(bad)[0])
             raise PluginError(f"plug-in {self.spec!r}: intersect returned tri[{i}] = {int(tri[i])}, "
                               f"outside [-1, {self.n_triangles}) for a scene of {self.n_triangles} triangles")
-        for name, value in (("t", t), ("u", np.where(hit, u, 0.0)), ("v", np.where(hit, v, 0.0))):
-            if np.isnan(value).any():
-                i = int(np.flatnonzero(np.isnan(value))[0])
-                raise PluginError(f"plug-in {self.spec!r}: intersect returned {name}[{i}] = NaN (tri[{i}] = {int(tri[i])})")
-        if not np.all(np.isfinite(t) == hit):
-            i = int(np.flatnonzero(np.isfinite(t) != hit)[0])
+        for name, bad in (("t", np.isnan(t)), ("u", hit & ~np.isfinite(u)), ("v", hit & ~np.isfinite(v))):
+            if bad.any():
+                i = int(np.flatnonzero(bad)[0])
+                value = {"t": t, "u": u, "v": v}[name][i]
+                raise PluginError(f"plug-in {self.spec!r}: intersect returned {name}[{i}] = {'NaN' if np.isnan(value) else value} "
+                                  f"(tri[{i}] = {int(tri[i])})")
+        wrong_t = (np.isfinite(t) != hit) | (~hit & (t != np.inf))
+        if wrong_t.any():
+            i = int(np.flatnonzero(wrong_t)[0])
             raise PluginError(f"plug-in {self.spec!r}: intersect returned t[{i}] = {t[i]} with tri[{i}] = {int(tri[i])}; "
                               "a hit needs a finite t, a miss t = inf and tri = -1")
         return t, tri, u, v
@@ -208,12 +222,12 @@ class CheckedDenoiser:
     def __call__(self, color: np.ndarray, albedo: np.ndarray, normal: np.ndarray) -> np.ndarray:
         """The plug-in's float32 ``(H, W, 3)`` denoised radiance, checked for shape, dtype and finiteness."""
         out = _call(self.spec, "denoising", self.inner, color, albedo, normal)
-        if not isinstance(out, np.ndarray) or out.shape != color.shape or out.dtype != np.float32:
+        if not isinstance(out, np.ndarray) or out.shape != color.shape or out.dtype.newbyteorder("=") != np.float32:
             raise PluginError(f"plug-in {self.spec!r}: the denoiser must return a float32 array of shape {color.shape}, "
                               f"got {_describe(out)}")
         if not np.isfinite(out).all():
             raise PluginError(f"plug-in {self.spec!r}: the denoiser returned {int(np.sum(~np.isfinite(out)))} NaN or infinite values")
-        return out
+        return np.ascontiguousarray(out, dtype=np.float32)  # native byte order, C order
 
 
 def load_accelerator(spec: str, scene: Scene) -> CheckedAccelerator:
