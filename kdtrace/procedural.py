@@ -144,3 +144,102 @@ def coplanar_stack(
     copies = flat[rng.integers(0, unique, size=n_triangles - unique)]
     corners = np.concatenate([flat, copies])[rng.permutation(n_triangles)]
     return _scene("coplanar-stack", corners, scale, offset)
+
+
+def instanced_scene(
+    base: Scene,
+    min_triangles: int,
+    *,
+    seed: int = 0,
+    terrain_cells: int = 0,
+) -> Scene:
+    """A production-scale scene: copies of ``base`` on a displaced terrain, at least ``min_triangles``.
+
+    The copies stand on a square grid in the x–z plane (``base``'s up axis is +y, as the shipped
+    scans'), spaced 1.25 times ``base``'s largest horizontal extent; each is turned about +y
+    by a random angle, scaled by a random factor in [0.8, 1.2] and shifted by up to a tenth of
+    the spacing, all drawn from ``seed``. Under them lies a heightfield of ``terrain_cells`` ×
+    ``terrain_cells`` cells (two triangles each; 0 for none), a sum of four random sine waves of
+    amplitude one tenth of ``base``'s height. The geometry is exact copies (not instances the
+    trees would share): every triangle is stored, as in a flattened production scene. Materials,
+    normals and texture coordinates of ``base`` are copied with it.
+
+    Parameters
+    ----------
+    base : Scene
+        The scan to copy (e.g. ``load_scene("samurai-monastery")``, 262k triangles).
+    min_triangles : int
+        The scene has at least this many triangles (copies are added until it does).
+    seed : int
+        Seed of the placements and of the terrain.
+    terrain_cells : int
+        Cells per side of the terrain (0: none).
+
+    Returns
+    -------
+    Scene
+        Named ``BASE-xCOPIES-tCELLS-sSEED``; its default camera sees the whole.
+
+    Raises
+    ------
+    ValueError
+        For ``min_triangles < 1`` or ``terrain_cells < 0``.
+    """
+    if min_triangles < 1 or terrain_cells < 0:
+        raise ValueError(f"instanced_scene needs min_triangles >= 1 and terrain_cells >= 0, got {min_triangles}, "
+                         f"{terrain_cells}")
+    terrain_triangles = 2 * terrain_cells**2
+    copies = max(1, -(-(min_triangles - terrain_triangles) // len(base.triangles)))
+    side = int(np.ceil(np.sqrt(copies)))
+    rng = np.random.default_rng(seed)
+    vertices = base.vertices.astype(np.float64)
+    low, high = vertices.min(axis=0), vertices.max(axis=0)
+    centre = (low + high) / 2.0  # of the bounding box
+    spacing = 1.25 * float(max(high[0] - low[0], high[2] - low[2]))
+    angles = rng.uniform(0.0, 2.0 * np.pi, copies)
+    scales = rng.uniform(0.8, 1.2, copies)
+    jitter = rng.uniform(-0.1, 0.1, (copies, 2)) * spacing
+    placed_vertices, placed_normals = [], []
+    for index in range(copies):
+        cos, sin = np.cos(angles[index]), np.sin(angles[index])
+        turn = np.array([[cos, 0.0, sin], [0.0, 1.0, 0.0], [-sin, 0.0, cos]])
+        row, column = divmod(index, side)
+        shift = np.array([(column - (side - 1) / 2) * spacing + jitter[index, 0], 0.0,
+                          (row - (side - 1) / 2) * spacing + jitter[index, 1]])
+        # centred horizontally, standing on y = 0, turned, scaled, then put on its grid cell
+        placed_vertices.append(((vertices - [centre[0], low[1], centre[2]]) @ turn.T) * scales[index] + shift)
+        if base.normals is not None:
+            placed_normals.append(base.normals.astype(np.float64) @ turn.T)
+    count = len(base.vertices)
+    triangles = [base.triangles.astype(np.int64) + index * count for index in range(copies)]
+    material_ids = [base.material_ids] * copies
+    materials = list(base.materials)
+    normals = np.concatenate(placed_normals) if base.normals is not None else None
+    texcoords = np.concatenate([base.texcoords] * copies) if base.texcoords is not None else None
+    if terrain_cells:
+        extent = side * spacing / 2.0
+        ground = heightfield_grid(terrain_cells, seed=seed, amplitude=0.1 * float(high[1] - low[1]) / extent)
+        # heightfield_grid's height is along z over x, y in [-1, 1]: lay it in the x–z plane, height along y
+        terrain = ground.vertices.astype(np.float64)[:, [0, 2, 1]] * [extent, extent, extent]
+        triangles.append(ground.triangles.astype(np.int64) + copies * count)
+        placed_vertices.append(terrain)
+        material_ids.append(np.full(len(ground.triangles), len(materials)))
+        materials.append(Material("terrain"))
+        if normals is not None:  # the terrain has no shading normals: its geometric ones are used
+            normals = None
+        if texcoords is not None:
+            texcoords = np.concatenate([texcoords, np.zeros((len(terrain), 2), np.float32)])
+    all_vertices = np.concatenate(placed_vertices).astype(np.float32)
+    return Scene(
+        name=f"{base.name}-x{copies}-t{terrain_cells}-s{seed}",
+        vertices=all_vertices,
+        triangles=np.concatenate(triangles).astype(np.int32),
+        material_ids=np.concatenate(material_ids).astype(np.int32),
+        materials=materials,
+        normals=None if normals is None else normals.astype(np.float32),
+        texcoords=texcoords,
+        cameras=[default_camera(all_vertices)],
+        sky=base.sky if base.sky is not None else Sky(DEFAULT_SKY_RADIANCE),
+        sources=[*base.sources, f"kdtrace.procedural.instanced_scene(min_triangles={min_triangles}, seed={seed}, "
+                 f"terrain_cells={terrain_cells})"],
+    )

@@ -66,3 +66,25 @@ def test_flat_heightfield_and_bad_arguments():
         slivers(10, max_aspect=0.5)
     with pytest.raises(ValueError):
         heightfield_grid(5, scale=0.0)
+
+
+def test_instanced_scene_reaches_its_triangle_count_reproducibly(shared_scenes):
+    from kdtrace.procedural import instanced_scene
+    from kdtrace.scenes import load_scene
+
+    base = load_scene("bunny")
+    scene = instanced_scene(base, 300_000, seed=1, terrain_cells=64)
+    copies = -(-(300_000 - 2 * 64**2) // len(base.triangles))
+    assert len(scene.triangles) == copies * len(base.triangles) + 2 * 64**2 >= 300_000
+    assert scene.name == f"bunny-x{copies}-t64-s1" and scene.materials[-1].name == "terrain"
+    again = instanced_scene(base, 300_000, seed=1, terrain_cells=64)
+    assert np.array_equal(scene.vertices, again.vertices) and np.array_equal(scene.triangles, again.triangles)
+    other = instanced_scene(base, 300_000, seed=2, terrain_cells=64)
+    assert not np.array_equal(scene.vertices, other.vertices)
+    # every copy stands on y = 0 and is the base turned about +y and scaled: its edge lengths scale together
+    first = scene.vertices[: len(base.vertices)].astype(np.float64)
+    assert first[:, 1].min() == pytest.approx(0.0, abs=1e-6)
+    ratio = np.linalg.norm(first[1] - first[0]) / np.linalg.norm(base.vertices[1].astype(np.float64) - base.vertices[0])
+    assert 0.8 - 1e-6 <= ratio <= 1.2 + 1e-6
+    with pytest.raises(ValueError, match="min_triangles"):
+        instanced_scene(base, 0)
