@@ -585,6 +585,27 @@ def denoiser_data(scene_names: list[str] | tuple[str, ...], profile: str | Recon
     return _denoiser_crops(datasets, profile, auxiliary, encode), _denoiser_data_hash(keys, profile, auxiliary)
 
 
+def default_denoiser_loss(model: nn.Module, range_floor: float) -> nn.Module:
+    """The paper's loss of a denoiser (:class:`reconstruction.loss.EdgeAwareLoss`, σ = 1.4), taken in
+    the net's perceptual transfer when it has one (``Denoiser(perceptual=G)``), else in ``log1p``.
+
+    Parameters
+    ----------
+    model : nn.Module
+        The denoiser.
+    range_floor : float
+        The edge maps' range floor (the profile's ``denoiser_edge_range_floor``).
+    """
+    from reconstruction.loss import DENOISER_SIGMA, EdgeAwareLoss, InSpace
+    from reconstruction.models import to_perceptual
+
+    loss = EdgeAwareLoss(DENOISER_SIGMA, range_floor)
+    if getattr(model, "perceptual", 0):  # the loss where the net works, not in log1p
+        return InSpace(loss, lambda z: to_perceptual(z, model.radiance_gain, model.perceptual),
+                       "perceptual transfer of the net")
+    return loss
+
+
 def train_denoiser(scene_names: list[str] | tuple[str, ...], profile: str | ReconstructionProfile = "quick",
                    model: nn.Module | None = None, loss_fn: nn.Module | None = None,
                    auxiliary: tuple[str, ...] = ("albedo",), directory: Path | None = None,
@@ -643,13 +664,7 @@ def train_denoiser(scene_names: list[str] | tuple[str, ...], profile: str | Reco
         torch.manual_seed(profile.seed)
         model = Denoiser(auxiliary, demodulate=demodulate, perceptual=perceptual)
     if loss_fn is None:
-        from reconstruction.loss import DENOISER_SIGMA, EdgeAwareLoss, InSpace
-        from reconstruction.models import to_perceptual
-
-        loss_fn = EdgeAwareLoss(DENOISER_SIGMA, profile.denoiser_edge_range_floor)
-        if getattr(model, "perceptual", 0):  # the loss where the net works, not in log1p
-            loss_fn = InSpace(loss_fn, lambda z: to_perceptual(z, model.radiance_gain, model.perceptual),
-                              "perceptual transfer of the net")
+        loss_fn = default_denoiser_loss(model, profile.denoiser_edge_range_floor)
     warmup_steps = max(warmup_steps, profile.denoiser_warmup_steps)
     schedule = {"warmup_steps": warmup_steps, "learning_rate": profile.denoiser_rate, "decay": profile.denoiser_decay}
     if directory is None:

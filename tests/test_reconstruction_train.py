@@ -291,7 +291,7 @@ def test_the_training_arithmetic_is_not_part_of_the_model_key():
 def test_every_committed_network_sits_under_the_key_of_its_recorded_settings():
     """Each committed folder's name is the key this code computes from its ``result.json``, so any
     machine kind finds it (whatever precision it was trained in)."""
-    from reconstruction.loss import DENOISER_SIGMA, SUPERRESOLUTION_SIGMA, EdgeAwareLoss
+    from reconstruction.loss import SUPERRESOLUTION_SIGMA, EdgeAwareLoss
     from reconstruction.models import Denoiser, Superresolution
 
     folders = [folder for store in (train.REPOSITORY / "models").iterdir() for folder in store.iterdir()]
@@ -303,7 +303,7 @@ def test_every_committed_network_sits_under_the_key_of_its_recorded_settings():
         kind = folder.name.split("-")[0]
         if kind == "denoiser":
             model = Denoiser(**record["kwargs"])
-            loss = EdgeAwareLoss(DENOISER_SIGMA, settings["denoiser_edge_range_floor"])
+            loss = train.default_denoiser_loss(model, settings["denoiser_edge_range_floor"])
         else:
             model, loss = Superresolution(), EdgeAwareLoss(SUPERRESOLUTION_SIGMA)
         assert train.parameter_count(model) == record["parameters"]
