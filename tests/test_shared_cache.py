@@ -120,12 +120,17 @@ _TREE = textwrap.dedent("""
 """)
 
 
-def test_two_processes_building_one_kdtree_build_it_once(tmp_path):
-    cache, barrier = tmp_path / "cache", tmp_path / "go"
-    processes = [_start(_TREE, str(barrier), env={"KDTRACE_CACHE": str(cache)}) for _ in range(2)]
+def _race(script: str, cache: Path, barrier: Path) -> list[dict]:
+    """Start two processes of ``script`` on ``cache``, release them together, and return their last JSON lines."""
+    processes = [_start(script, str(barrier), env={"KDTRACE_CACHE": str(cache)}) for _ in range(2)]
     time.sleep(0.5)
     barrier.touch()
-    results = [json.loads(_finish(process).strip().splitlines()[-1]) for process in processes]
+    return [json.loads(_finish(process).strip().splitlines()[-1]) for process in processes]
+
+
+def test_two_processes_building_one_kdtree_build_it_once(tmp_path):
+    cache = tmp_path / "cache"
+    results = _race(_TREE, cache, tmp_path / "go")
     assert sorted(result["cache_hit"] for result in results) == [False, True]  # one built, one loaded
     assert results[0]["digest"] == results[1]["digest"] and results[0]["nodes"] > 1
     assert len(list((cache / "kdtrees").glob("*.npz"))) == 1
@@ -148,11 +153,8 @@ _DATASET = textwrap.dedent("""
 
 
 def test_two_processes_generating_one_dataset_share_its_views(tmp_path):
-    cache, barrier = tmp_path / "cache", tmp_path / "go"
-    processes = [_start(_DATASET, str(barrier), env={"KDTRACE_CACHE": str(cache)}) for _ in range(2)]
-    time.sleep(0.5)
-    barrier.touch()
-    made_by = [json.loads(_finish(process).strip().splitlines()[-1]) for process in processes]
+    cache = tmp_path / "cache"
+    made_by = _race(_DATASET, cache, tmp_path / "go")
     # each view was rendered by one process and read by the other: a view both had rendered would
     # carry each process's own identity in its own manifest
     assert made_by[0] == made_by[1] and len(made_by[0]) > 1
