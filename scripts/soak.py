@@ -5,11 +5,13 @@ Each property runs in its own pytest process with ``KDTRACE_SOAK_EXAMPLES`` exam
 after, commit, machine) is written to ``results/soak/properties/NAME.json`` (``--out``) as soon as it ends,
 and the table ``results/soak/README.md`` is rewritten from every record. A property whose
 record was made with the same example count is skipped, so a soak can span sittings: run the
-command again and it goes on with the next property. Run it on an idle machine.
+command again and it goes on with the next property. Run it on an idle machine; on two cores,
+two shards (``--shard 0/2`` and ``--shard 1/2``, each with ``NUMBA_NUM_THREADS=1``) soak
+every other property side by side.
 
 Usage::
 
-    .venv/bin/python scripts/soak.py [--examples N] [-k PATTERN] [--again] [--out DIR]
+    .venv/bin/python scripts/soak.py [--examples N] [-k PATTERN] [--shard I/N] [--again] [--out DIR]
 """
 
 from __future__ import annotations
@@ -95,14 +97,20 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--examples", type=int, default=int(os.environ.get("KDTRACE_SOAK_EXAMPLES", "10000")))
     parser.add_argument("-k", dest="pattern", default="", help="only properties whose name contains this")
+    parser.add_argument("--shard", default="0/1", metavar="I/N",
+                        help="only every N-th property, starting with the I-th (0-based), of those selected")
     parser.add_argument("--again", action="store_true", help="soak properties that already have a record")
     parser.add_argument("--out", type=Path, default=RESULTS, help="folder of the records and table (results/soak)")
     args = parser.parse_args(argv)
     if args.examples < 1:
         parser.error("--examples must be at least 1")
+    shard = re.fullmatch(r"(\d+)/(\d+)", args.shard)
+    if not shard or not int(shard.group(1)) < int(shard.group(2)):
+        parser.error(f"--shard takes I/N with 0 <= I < N, got {args.shard!r}")
     names = [name for name in properties() if args.pattern in name]
     if not names:
         parser.error(f"no property of {TESTS} contains {args.pattern!r}")
+    names = names[int(shard.group(1))::int(shard.group(2))]
     failed = 0
     for name in names:
         path = args.out / "properties" / f"{name}.json"
