@@ -11,6 +11,7 @@ report part of a profile), ``verdict`` (its one-page verdict, again from a resul
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
 import sys
 import time
@@ -169,7 +170,7 @@ def _check_options(args, config) -> None:
     from kdtrace.plugins import ACCELERATOR_GROUP, DENOISER_GROUP
 
     command = args.command
-    if command in ("report", "gate", "update-baseline", "verdict"):
+    if command in ("report", "gate", "update-baseline", "verdict", "production"):
         try:
             config.profile(args.profile)
         except ValueError as error:
@@ -397,6 +398,22 @@ def _report(args, config) -> int:
     return 0 if outcome.ok else 1
 
 
+def _production(args, config) -> int:
+    from reports.production import generate
+
+    if args.triangles is not None:
+        config = dataclasses.replace(config, production=dataclasses.replace(
+            config.production, triangles=args.triangles,
+            scaling_sizes=tuple(size for size in config.production.scaling_sizes if size < args.triangles)
+            + (args.triangles,)))
+    out_dir = _writable(results_dir(args.profile, args.out))
+    started = time.perf_counter()
+    generate(config, args.profile, out_dir, fresh=args.fresh)
+    print(f"wrote {out_dir}/table1_production.md and table1_build_production.md; "
+          f"{time.perf_counter() - started:.0f} s in all")
+    return 0
+
+
 def _verdict(args, config) -> int:
     from reports.verdict_page import link_from_index, write_verdict
 
@@ -526,6 +543,16 @@ def build_parser() -> argparse.ArgumentParser:
                         help="also put this plug-in denoiser through Tables 2 and 6 and the error-time sweep: a "
                              "registered name (kdtrace.denoisers) or package.module:factory; repeatable or comma-separated")
     report.set_defaults(run=_report)
+
+    production = sub.add_parser("production", help="Table 1 at production scale: a generated scene of 10 million "
+                                "triangles ([production] in the configuration) against Embree")
+    production.add_argument("--profile", default="standard", help="profile whose ray counts and frame size are used, "
+                            "and whose results folder is written (default standard)")
+    production.add_argument("--triangles", type=_positive_int, help="at least this many triangles (default "
+                            f"{defaults.production.triangles:,}, [production] triangles)")
+    production.add_argument("--out", type=_folder, help="output folder (default results/PROFILE)")
+    production.add_argument("--fresh", action="store_true", help="measure every stage again instead of resuming")
+    production.set_defaults(run=_production)
 
     verdict = sub.add_parser("verdict", help="write the one-page verdict (verdict.md, verdict.html) of a results folder "
                              "again, from what its report wrote; measures nothing")

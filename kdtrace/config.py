@@ -120,6 +120,48 @@ class EmbreeCheckConfig:
 
 
 @dataclass(frozen=True)
+class ProductionConfig:
+    """Table 1 at production scale (``kdtrace production``, :mod:`reports.production`).
+
+    Attributes
+    ----------
+    base_scene : str
+        The shipped scan copied to make the scene (:func:`kdtrace.procedural.instanced_scene`).
+    triangles : int
+        The scene has at least this many triangles.
+    terrain_cells : int
+        Cells per side of the displaced terrain under the copies (two triangles each).
+    seed : int
+        Seed of the placements, the terrain and every ray set.
+    agreement_rays_per_kind : int
+        Rays per kind of the Embree agreement check (its disagreements judged by the float64 oracle).
+    oracle_rays : int
+        Incoherent rays whose every answer is checked against the float64 oracle (every ray
+        against every triangle, so a few thousand at most).
+    scaling_sizes : tuple of int
+        Triangle counts of the build-scaling measurement (nested subsets of the scene), ascending;
+        the largest may not exceed ``triangles``.
+    """
+
+    base_scene: str = "samurai-monastery"
+    triangles: int = 10_000_000
+    terrain_cells: int = 256
+    seed: int = 20261206
+    agreement_rays_per_kind: int = 20_000
+    oracle_rays: int = 1_000
+    scaling_sizes: tuple[int, ...] = (10_000, 31_623, 100_000, 316_228, 1_000_000, 3_162_278, 10_000_000)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "scaling_sizes", tuple(int(size) for size in self.scaling_sizes))
+        if self.triangles < 1 or self.terrain_cells < 0 or self.agreement_rays_per_kind < 1 or self.oracle_rays < 1:
+            raise ValueError("production.triangles, agreement_rays_per_kind and oracle_rays must be >= 1 and "
+                             "terrain_cells >= 0")
+        sizes = self.scaling_sizes
+        if not sizes or sizes[0] < 1 or list(sizes) != sorted(set(sizes)):
+            raise ValueError(f"production.scaling_sizes must be ascending distinct positive counts, got {list(sizes)}")
+
+
+@dataclass(frozen=True)
 class ProfileConfig:
     """What one report profile runs.
 
@@ -624,6 +666,7 @@ class Config:
     render: RenderConfig = RenderConfig()
     reconstruction: ReconstructionConfig = ReconstructionConfig()
     distributed: DistributedConfig = DistributedConfig()
+    production: ProductionConfig = ProductionConfig()
     profiles: dict[str, ProfileConfig] = dataclasses.field(default_factory=dict)
 
     def profile(self, name: str) -> ProfileConfig:
@@ -645,6 +688,7 @@ _SECTIONS = {
     "render": RenderConfig,
     "reconstruction": ReconstructionConfig,
     "distributed": DistributedConfig,
+    "production": ProductionConfig,
 }
 
 

@@ -55,27 +55,49 @@ def triangle_subset(scene: Scene, count: int, seed: int = SUBSET_SEED) -> Scene:
                  scene.material_ids[np.sort(order)], scene.materials)
 
 
-def measure(scene: Scene, config: Config, fractions=FRACTIONS, repeats: int = REPEATS) -> dict:
-    """Build seconds (medians of ``repeats``) of both variants at each subset size, and the fitted slopes."""
+def fraction_counts(scene: Scene, fractions=FRACTIONS) -> list[int]:
+    """Triangle counts of ``scene`` at each fraction of its triangles (at least 1)."""
+    return [max(1, round(fraction * len(scene.triangles))) for fraction in fractions]
+
+
+def measure(scene: Scene, config: Config, counts: list[int], repeats: int = REPEATS,
+            once_above_seconds: float = float("inf")) -> dict:
+    """Build seconds (medians of ``repeats``) of both variants at each subset size, and the fitted slopes.
+
+    Parameters
+    ----------
+    scene : Scene
+        The scene whose nested random subsets are built.
+    config : Config
+        Its ``kdtree`` section is the build recipe.
+    counts : list of int
+        Triangle counts, ascending, each at most the scene's.
+    repeats : int
+        Builds per size and variant (the median is kept).
+    once_above_seconds : float
+        A size whose first build of a variant takes longer than this is built once (its
+        seconds barely move between builds, and at 10 million triangles each takes minutes).
+    """
     rows = []
-    for fraction in fractions:
-        subset = triangle_subset(scene, max(1, round(fraction * len(scene.triangles))))
+    for count in counts:
+        subset = triangle_subset(scene, count)
         row = {"triangles": len(subset.triangles)}
         for variant in VARIANTS:
             times = []
-            for _ in range(repeats):
+            while len(times) < repeats and not (times and times[0] > once_above_seconds):
                 with warnings.catch_warnings():
                     warnings.simplefilter("ignore")  # zero-area triangles: counted in Table 1 already
                     tree = build_kdtree(subset, variant, config.kdtree, cache=False)
                 times.append(tree.stats["build_seconds"])
             row[f"{variant}_seconds"] = float(np.median(times))
+            row[f"{variant}_builds"] = len(times)
             row[f"{variant}_nodes"] = int(tree.stats["nodes"])
             row[f"{variant}_references"] = int(tree.stats["triangle_references"])
         rows.append(row)
     counts = [row["triangles"] for row in rows]
     n = np.asarray(counts, float)
     return {
-        "scene": scene.name, "rows": rows,
+        "scene": scene.name, "rows": rows, "repeats": repeats,
         "slopes": {variant: loglog_slope(counts, [row[f"{variant}_seconds"] for row in rows]) for variant in VARIANTS},
         # Sparser subsets make smaller trees per triangle: the slope against the naive tree's
         # references (the work the build writes) separates the algorithm from the tree's growth.
@@ -108,22 +130,24 @@ def generate(config: Config, scene_name: str, out_dir: Path, fresh: bool = False
     record = json.loads(path.read_text()) if path.exists() and not fresh else None
     reused = record is not None and record.get("key") == key
     if not reused:
+        scene = load_scene(scene_name)
         record = {"key": key, "measured_at": time.strftime("%Y-%m-%d %H:%M:%S"), "machine": machine(),
-                  **measure(load_scene(scene_name), config)}
+                  **measure(scene, config, fraction_counts(scene))}
         atomic_write_bytes(path, json.dumps(record, indent=1).encode())
     write_outputs(record, out_dir)
     return record, reused
 
 
-def write_outputs(record: dict, out_dir: Path) -> None:
-    """table1_build.md / .csv and figures/build_scaling.png, atomically."""
+def write_outputs(record: dict, out_dir: Path, stem: str = "table1_build", figure: str = "build_scaling") -> None:
+    """``STEM.md`` / ``STEM.csv`` and ``figures/FIGURE.png``, atomically."""
     from reports.figures import _figure, write_figure
 
     table = pd.DataFrame(record["rows"])
     slopes, reference = record["slopes"], record["reference_slopes"]
     host = record["machine"]
     text = (f"# Table 1 — KD-tree build scaling ({record['scene']})\n\n"
-            f"Build seconds on one core after compilation (median of {REPEATS}) for nested random subsets of "
+            f"Build seconds on one core after compilation (median of {record.get('repeats', REPEATS)}; "
+            f"the builds column counts them) for nested random subsets of "
             f"{record['scene']}'s triangles; local = the naive build plus the pull-up. Machine: {host['cpu']}, "
             f"measured {record['measured_at']}. Fitted slope of log(seconds) against log(N): naive "
             f"{slopes['naive']:.2f}, local {slopes['local']:.2f}; over the same sizes N log N has slope "
@@ -132,11 +156,11 @@ def write_outputs(record: dict, out_dir: Path) -> None:
             f"naive {record['slopes_by_references']['naive']:.2f}, local {record['slopes_by_references']['local']:.2f}."
             "\n\n"
             + tabulate(table.to_dict("records"), headers="keys", tablefmt="github", floatfmt=".3f")
-            + "\n\n![build seconds against triangles](figures/build_scaling.png)\n")
-    atomic_write_bytes(out_dir / "table1_build.md", text.encode())
-    atomic_write_bytes(out_dir / "table1_build.csv", table.to_csv(index=False).encode())
-    figure = _figure(5.0, 3.6)
-    axes = figure.add_subplot()
+            + f"\n\n![build seconds against triangles](figures/{figure}.png)\n")
+    atomic_write_bytes(out_dir / f"{stem}.md", text.encode())
+    atomic_write_bytes(out_dir / f"{stem}.csv", table.to_csv(index=False).encode())
+    drawing = _figure(5.0, 3.6)
+    axes = drawing.add_subplot()
     for variant, marker in zip(VARIANTS, ("o", "s"), strict=True):
         axes.loglog(table["triangles"], table[f"{variant}_seconds"], marker=marker,
                     label=f"{variant} (slope {slopes[variant]:.2f})")
@@ -147,7 +171,7 @@ def write_outputs(record: dict, out_dir: Path) -> None:
     axes.set_ylabel("build seconds (one core)")
     axes.set_title(f"KD-tree build, {record['scene']}")
     axes.legend(fontsize="small")
-    write_figure(figure, out_dir / "figures" / "build_scaling.png")
+    write_figure(drawing, out_dir / "figures" / f"{figure}.png")
 
 
 def metrics_of(record: dict) -> list[Metric]:

@@ -139,6 +139,42 @@ def time_occlusion(scene, trees: dict, embree, profile) -> dict[str, float]:
     return row
 
 
+def ray_speeds(scene, trees: dict, embree, profile, progress: tqdm | None = None) -> dict[str, float]:
+    """Mrays/s of both trees and Embree on primary, incoherent and shadow rays, with the work per ray.
+
+    Primary rays are one frame at the profile's size and spp, traced by our trees in camera
+    packets as the path tracer traces them; incoherent and shadow rays are the profile's
+    ``timing_rays`` (:func:`kdtrace.timing.timing_ray_sets`, :func:`time_occlusion`).
+
+    Returns
+    -------
+    dict
+        ``{kind}_mrays_{naive,local,embree}``, ``{kind}_nodes_per_ray_{variant}``,
+        ``{kind}_tests_per_ray_{variant}``, ``{kind}_local_over_naive`` and
+        ``{kind}_local_over_embree`` for ``kind`` in primary and incoherent, and the
+        ``occlusion_*`` fields of :func:`time_occlusion`.
+    """
+    row: dict[str, float] = {}
+    for kind, (origins, directions) in timing_ray_sets(scene, profile).items():
+        if progress is not None:
+            progress.set_postfix_str(f"{scene.name}: timing {kind} rays")
+        # Camera rays in packets, as the path tracer traces them (same hits and counters).
+        traced = {variant: CameraPackets(tree) for variant, tree in trees.items()} if kind == "primary" else trees
+        seconds = interleaved_seconds({**traced, "embree": embree}, origins, directions)
+        for label, timings in seconds.items():
+            row[f"{kind}_mrays_{label}"] = len(origins) / statistics.median(timings) / 1e6
+        for variant, tree in trees.items():  # the work behind the speed, from the last timed call
+            work = tree.last_counters.mean()
+            row[f"{kind}_nodes_per_ray_{variant}"] = work["nodes_per_ray"]
+            row[f"{kind}_tests_per_ray_{variant}"] = work["tests_per_ray"]
+        row[f"{kind}_local_over_naive"] = paired_speedup(seconds["naive"], seconds["local"])
+        row[f"{kind}_local_over_embree"] = paired_speedup(seconds["embree"], seconds["local"])
+    if progress is not None:
+        progress.set_postfix_str(f"{scene.name}: timing occlusion rays")
+    row.update(time_occlusion(scene, trees, embree, profile))
+    return row
+
+
 def scene_row(name: str, config: Config, profile_name: str, progress: tqdm) -> dict:
     """Measure one scene: tree statistics, throughput of both trees and Embree, frame times, agreement."""
     profile = config.profile(profile_name)
@@ -157,23 +193,7 @@ def scene_row(name: str, config: Config, profile_name: str, progress: tqdm) -> d
     row["reference_reduction"] = 1.0 - row["local_triangle_references"] / row["naive_triangle_references"]
     row["batches_regrouped"] = bool(trees["local"].regroups)
 
-    ray_sets = timing_ray_sets(scene, profile)
-    for kind, (origins, directions) in ray_sets.items():
-        progress.set_postfix_str(f"{name}: timing {kind} rays")
-        # Camera rays in packets, as the path tracer traces them (same hits and counters).
-        traced = {variant: CameraPackets(tree) for variant, tree in trees.items()} if kind == "primary" else trees
-        seconds = interleaved_seconds({**traced, "embree": embree}, origins, directions)
-        for label, timings in seconds.items():
-            row[f"{kind}_mrays_{label}"] = len(origins) / statistics.median(timings) / 1e6
-        for variant, tree in trees.items():  # the work behind the speed, from the last timed call
-            work = tree.last_counters.mean()
-            row[f"{kind}_nodes_per_ray_{variant}"] = work["nodes_per_ray"]
-            row[f"{kind}_tests_per_ray_{variant}"] = work["tests_per_ray"]
-        row[f"{kind}_local_over_naive"] = paired_speedup(seconds["naive"], seconds["local"])
-        row[f"{kind}_local_over_embree"] = paired_speedup(seconds["embree"], seconds["local"])
-
-    progress.set_postfix_str(f"{name}: timing occlusion rays")
-    row.update(time_occlusion(scene, trees, embree, profile))
+    row.update(ray_speeds(scene, trees, embree, profile, progress))
 
     progress.set_postfix_str(f"{name}: frame {profile.frame_width}x{profile.frame_height} {profile.frame_spp} spp")
     with warnings.catch_warnings(record=True) as render_warnings:

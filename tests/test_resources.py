@@ -93,3 +93,40 @@ def test_the_shipped_standard_profile_fits_a_machine_with_2_gib(two_gib):
     assert BUILD_BYTES_PER_TRIANGLE >= 3 * 291  # over three times the measured peak
     profile = DEFAULT_CONFIG.reconstruction.profile("standard")
     assert data.view_memory_bytes(profile) < two_gib / 10
+
+
+def test_resident_peak_sees_a_temporary_allocation_and_what_is_kept():
+    import numpy as np
+
+    def temporary_then_kept():
+        scratch = np.ones(64 * 2**20 // 8)  # 64 MiB touched, then freed
+        total = float(scratch.sum())
+        del scratch
+        return total, np.ones(16 * 2**20 // 8)  # 16 MiB kept
+
+    (total, kept), measured = resources.resident_peak(temporary_then_kept)
+    assert total == 8 * 2**20 and measured["seconds"] > 0
+    if measured["peak_exact"]:
+        assert 60 * 2**20 <= measured["peak_bytes"] <= 96 * 2**20
+    assert 14 * 2**20 <= measured["retained_bytes"] <= 24 * 2**20
+    del kept
+
+
+def test_resident_memory_without_the_status_fields_is_an_error(tmp_path, monkeypatch):
+    status = tmp_path / "status"
+    status.write_text("Name:\tpython\nVmRSS:\t  100 kB\n")
+    monkeypatch.setattr(resources, "STATUS", status)
+    with pytest.raises(OSError, match="VmHWM"):
+        resources.resident_memory()
+
+
+def test_a_production_scene_too_large_is_refused_before_it_is_made(two_gib, monkeypatch):
+    from kdtrace import procedural
+    from kdtrace.procedural import instanced_scene, instanced_scene_bytes
+    from kdtrace.scenes import load_scene
+
+    base = load_scene("cbox-original")
+    monkeypatch.setattr(procedural.np, "concatenate", _allocating)
+    with pytest.raises(InsufficientMemoryError, match=r"10,000,000 triangles.*GiB"):
+        instanced_scene(base, 10_000_000)
+    assert instanced_scene_bytes(10_000_000) > two_gib
