@@ -169,7 +169,7 @@ def write_outputs(record: dict, out_dir: Path, stem: str = "table1_build", figur
     axes.loglog(n, anchor * n * np.log(n), "k:", label=f"N log N (slope {reference['N log N']:.2f})")
     axes.set_xlabel("triangles")
     axes.set_ylabel("build seconds (one core)")
-    axes.set_title(f"KD-tree build, {record['scene']}")
+    axes.set_title(f"KD-tree build\n{record['scene']}", fontsize="medium")
     axes.legend(fontsize="small")
     write_figure(drawing, out_dir / "figures" / f"{figure}.png")
 

@@ -45,6 +45,7 @@ import numba
 import numpy as np
 from tqdm import tqdm
 
+from kdtrace import oracle, procedural
 from kdtrace.cache import atomic_write_bytes, content_key, source_fingerprint
 from kdtrace.config import Config
 from kdtrace.kdtree import VARIANTS, build_bytes, build_kdtree
@@ -52,8 +53,10 @@ from kdtrace.oracle import nearest_hits_fast
 from kdtrace.procedural import instanced_scene, instanced_scene_bytes
 from kdtrace.provenance import machine, stamp
 from kdtrace.rays import random_rays
+from kdtrace.render import renderer_fingerprint
 from kdtrace.resources import require_memory, resident_peak
 from kdtrace.scenes import load_scene
+from references import agreement as classification
 from references.agreement import AGREE, TIE, UNEXPLAINED, WRONG, TriangleGeometry, check_scene, compare_hits
 from references.embree import EmbreeIntersector
 from reports import build_scaling, table1
@@ -62,21 +65,28 @@ from reports import build_scaling, table1
 RECORD_VERSION = 1
 #: The stages, in the order they run.
 STAGES = ("scene", "build-naive", "build-local", "embree", "rays", "agreement", "scaling")
-#: Bytes of Embree's BVH and mesh per triangle, an upper bound for the memory check (measured: about 110).
+#: Bytes per triangle of Embree's BVH and mesh, an upper bound for the memory check.
 EMBREE_BYTES_PER_TRIANGLE = 256
+#: Bytes per triangle a finished tree keeps ready to trace (arrays, traversal copies, corners,
+#: span corners), an upper bound for the memory check.
+TREE_BYTES_PER_TRIANGLE = 512
 
 
 def stage_key(config: Config, profile_name: str, stage: str) -> str:
-    """The content key of one stage's record: what it measured with, and the code that measured it."""
+    """The content key of one stage's record: what it measured with, and the code whose speed and answers
+    it measured (the build, the traversal, the scene generator, the oracle and the agreement classes, as
+    Table 1's rows are keyed; not the code that writes the tables)."""
     profile = config.profile(profile_name)
     return content_key("production", RECORD_VERSION, stage, config.production.__dict__, config.kdtree.__dict__,
                        {field: getattr(profile, field) for field in table1.PROFILE_FIELDS}, numba.get_num_threads(),
-                       source_fingerprint(table1), source_fingerprint(build_scaling))
+                       renderer_fingerprint(), source_fingerprint(procedural, oracle, classification))
 
 
 def needed_bytes(triangles: int) -> int:
-    """Upper bound of the memory a production run holds at its peak: the scene, two trees, one build, Embree."""
-    return instanced_scene_bytes(triangles) + 3 * build_bytes(triangles) + EMBREE_BYTES_PER_TRIANGLE * triangles
+    """Upper bound of the memory a production run holds at its peak: the scene, one finished tree while the
+    other is built, then both trees and Embree's BVH."""
+    return (instanced_scene_bytes(triangles) + build_bytes(triangles)
+            + (TREE_BYTES_PER_TRIANGLE + EMBREE_BYTES_PER_TRIANGLE) * triangles)
 
 
 def oracle_sample(scene, trees: dict, rays: int, seed: int) -> dict[str, int]:
