@@ -63,6 +63,9 @@ ROW_VERSION = 9
 FRAME_REPEATS = 4
 #: Profile fields a row depends on (its cache key).
 PROFILE_FIELDS = ("agreement_rays_per_kind", "timing_rays", "frame_width", "frame_height", "frame_spp", "seed")
+#: The line of table1.md that links the production-scale table (``kdtrace production``) when it is there.
+PRODUCTION_LINK = ("\nThe same measurements on a generated scene of ten million triangles (`kdtrace production`): "
+                   "[table1_production.md](table1_production.md).\n")
 #: Non-numeric columns left out of table1.csv.
 TEXT_COLUMNS = ("agreement_table", "agreement_counts", "warnings")
 
@@ -652,6 +655,8 @@ def write_outputs(table: pd.DataFrame, config: Config, profile_name: str, out_di
     if sensitivity:
         text += ("\nThe local-branch tree under the paper's build recipe and under ours (reference reduction, memory, "
                  "local/naive speed): [table1_sensitivity.md](table1_sensitivity.md).\n")
+    if (out_dir / "table1_production.md").is_file():  # written by `kdtrace production`, kept between runs
+        text += PRODUCTION_LINK
     if plugins:
         text += ("\n## Plug-in accelerators\n\n"
                  "Each plug-in (`kdtrace report --accelerator SPEC`) on the same primary and incoherent rays as our "

@@ -178,6 +178,8 @@ def test_report_puts_plugins_through_every_part(shared_scenes, isolated_cache, t
     monkeypatch.setattr("references.mitsuba.render_reference", _reference_stand_in)
     (tmp_path / "tiny.toml").write_text(TINY)
     out = tmp_path / "report"
+    out.mkdir()
+    (out / "table1_production.md").write_text("# from an earlier `kdtrace production`\n")  # kept, and linked
     started = time.perf_counter()
     status = cli_main(["--config", str(tmp_path / "tiny.toml"), "report", "--profile", "tiny", "--out", str(out),
                        "--parts", "table1,agreement,reconstruction,error_time",
@@ -207,6 +209,7 @@ def test_report_puts_plugins_through_every_part(shared_scenes, isolated_cache, t
     assert plugins.loc[BROKEN_ACCELERATOR, "failed"].startswith("failed: " + bad_tri)
     table1 = (out / "table1.md").read_text()
     assert "## Plug-in accelerators" in table1 and BRUTE_FORCE in table1 and bad_tri in table1
+    assert "[table1_production.md](table1_production.md)" in table1
     assert metrics[metric_name("table1", SCENE, BRUTE_FORCE, "over_embree_primary")].kind == "ratio"
     assert metrics[metric_name("table1", SCENE, BRUTE_FORCE, "wrong_hits")].value == 0
     assert metrics[f"table1/{SCENE}/wrong_hits"].value == 0 and metrics[f"table1/{SCENE}/unexplained_disagreements"].value == 0

@@ -378,3 +378,19 @@ def test_index_links_the_verdict_first_once(tmp_path):
     assert verdict_page.link_from_index(tmp_path) and verdict_page.link_from_index(tmp_path)
     index = (tmp_path / "README.md").read_text()
     assert index.count("](verdict.md)") == 1 and index.index("verdict.md") < index.index("rest")
+
+
+def test_production_scale_is_shown_beside_the_memory_verdicts_and_not_graded(tmp_path):
+    tables = verdict.RunTables(tmp_path)
+    assert verdict._at_production_scale(tables, "tree_bytes", "less") == ""  # not run here
+    stages = {"scene": {"triangles": 10_114_192},
+              "build-naive": {"tree_bytes": 1000, "triangle_references": 400},
+              "build-local": {"tree_bytes": 828, "triangle_references": 287}}
+    (tmp_path / "table1_production.json").write_text(json.dumps({"stages": stages}))
+    tables = verdict.RunTables(tmp_path)
+    assert verdict._at_production_scale(tables, "tree_bytes", "less") == \
+        "; 17.2% less at 10,114,192 triangles (kdtrace production)"
+    assert "28.2% fewer references at 10,114,192" in verdict._at_production_scale(tables, "triangle_references",
+                                                                                  "fewer references")
+    (tmp_path / "table1_production.json").write_text("{not json")
+    assert verdict._at_production_scale(verdict.RunTables(tmp_path), "tree_bytes", "less") == ""
