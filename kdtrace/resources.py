@@ -105,7 +105,8 @@ def resident_peak(call: Callable[[], Result]) -> tuple[Result, dict[str, float]]
     The peak is reset to the current resident size first (``/proc/self/clear_refs``), so
     ``peak_bytes`` is the highest resident size during the call minus the size before it:
     every allocation the call touched, numba's and native libraries' included (Python's
-    ``tracemalloc`` sees only Python's). ``retained_bytes`` is what is still resident after.
+    ``tracemalloc`` sees only Python's). ``retained_bytes`` is what is still resident after,
+    freed memory that the C allocator keeps for reuse included.
 
     Returns
     -------

@@ -106,9 +106,11 @@ def test_resident_peak_sees_a_temporary_allocation_and_what_is_kept():
 
     (total, kept), measured = resources.resident_peak(temporary_then_kept)
     assert total == 8 * 2**20 and measured["seconds"] > 0
+    # what is kept is resident; the freed 64 MiB may be too, when the C allocator keeps it for reuse
+    assert measured["retained_bytes"] >= 14 * 2**20
     if measured["peak_exact"]:
-        assert 60 * 2**20 <= measured["peak_bytes"] <= 96 * 2**20
-    assert 14 * 2**20 <= measured["retained_bytes"] <= 24 * 2**20
+        assert 60 * 2**20 <= measured["peak_bytes"] <= 160 * 2**20
+        assert measured["retained_bytes"] <= measured["peak_bytes"]
     del kept
 
 
