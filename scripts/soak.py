@@ -79,17 +79,19 @@ def soak_one(name: str, examples: int) -> dict:
 def write_table(records: list[dict], out: Path) -> Path:
     """``OUT/README.md``: one row per soaked property."""
     lines = ["# Soak of the KD-tree properties", "",
-             f"`.venv/bin/python scripts/soak.py`: every hypothesis property of `{TESTS}`, one pytest process each, "
-             "on an idle machine. Each example builds both trees on a drawn scene and checks its rays against the "
-             "float64 oracle and the wrong/unexplained classifier. One record per property in "
-             "[properties/](properties/).", "",
-             "| property | examples passing | failing | invalid (filtered) | seconds | load before | commit | machine |",
-             "|---|---:|---:|---:|---:|---:|---|---|"]
+             f"`.venv/bin/python scripts/soak.py`: every hypothesis property of `{TESTS}`, one pytest process each. "
+             "Each example builds both trees on a drawn scene and checks its rays against the float64 oracle and the "
+             "wrong/unexplained classifier. Seconds depend on the load: two shards side by side (`--shard`) put it "
+             "near 2 and give each property one numba thread. One record per property in [properties/](properties/).",
+             "",
+             "| property | examples passing | failing | invalid (filtered) | seconds | load before | numba threads | "
+             "commit | machine |",
+             "|---|---:|---:|---:|---:|---:|---:|---|---|"]
     for record in records:
         machine = record.get("machine", {})
         lines.append(f"| `{record['property']}` | {record['passing']} | {record['failing']} | {record['invalid']} | "
-                     f"{record['wall_seconds']:.0f} | {record['load_before']:.2f} | {record['commit']} | "
-                     f"{machine.get('cpu', '?')} [{machine.get('cpu_isa', '?')}] |")
+                     f"{record['wall_seconds']:.0f} | {record['load_before']:.2f} | {machine.get('numba_threads', '?')} | "
+                     f"{record['commit']} | {machine.get('cpu', '?')} [{machine.get('cpu_isa', '?')}] |")
     return atomic_write_bytes(out / "README.md", ("\n".join(lines) + "\n").encode())
 
 
@@ -125,10 +127,16 @@ def main(argv: list[str] | None = None) -> int:
         failed += not record["passed"]
         print(f"{name}: {record['passing']} passing, {record['failing']} failing, {record['wall_seconds']:.0f} s",
               flush=True)
-    records = [json.loads(p.read_text()) for p in sorted((args.out / "properties").glob("*.json"))]
-    order = {name: i for i, name in enumerate(properties())}
-    print(f"wrote {write_table(sorted(records, key=lambda r: order.get(r['property'], len(order))), args.out)}")
+        rewrite_table(args.out)  # after every property: a soak stopped midway still has its table
+    print(f"wrote {rewrite_table(args.out)}")
     return 1 if failed else 0
+
+
+def rewrite_table(out: Path) -> Path:
+    """``OUT/README.md`` from every record in ``OUT/properties``, in the file's order of the properties."""
+    records = [json.loads(p.read_text()) for p in sorted((out / "properties").glob("*.json"))]
+    order = {name: i for i, name in enumerate(properties())}
+    return write_table(sorted(records, key=lambda r: order.get(r["property"], len(order))), out)
 
 
 if __name__ == "__main__":
