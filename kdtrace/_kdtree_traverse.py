@@ -399,10 +399,13 @@ def trace_ray(
             else:
                 near = left + np.uint64(1)
                 far = left
-            if d_axis == 0.0 and o_axis == split:
+            if o_axis == split and (d_axis == 0.0 or o_axis + d_axis * ext == o_axis):
                 # Lying in the plane: triangles of both children can touch the ray along
                 # their edges in the plane (a triangle reaching the plane from one side is
-                # stored on that side only), so visit both over the same interval.
+                # stored on that side only), so visit both over the same interval. A ray
+                # whose component along the axis is so small (a subnormal) that in float64
+                # it never leaves the plane over the interval lies in it as well: the
+                # triangle test sees it there.
                 st_node[sp] = far
                 st_ent[sp] = ent
                 st_ext[sp] = ext

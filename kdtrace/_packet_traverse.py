@@ -314,7 +314,8 @@ def _split_lanes(split, axis, active, lanes3, lanes):
         t_plane = (split - o_axis) * i_row[r]
         on_plane = o_axis == split
         parallel = d_axis == 0.0
-        lying = parallel & on_plane
+        # in the plane over the whole interval, in float64 (see trace_ray)
+        lying = on_plane & (parallel | (o_axis + d_axis * ext == o_axis))
         one_child = parallel | on_plane
         near_only = (not one_child) & ((t_plane > ext * INTERVAL_PAD) | (t_plane <= 0.0) | (t_plane > best[r]))
         decided = one_child | near_only

@@ -368,6 +368,30 @@ def test_ray_lying_in_a_split_plane_finds_the_hit_on_the_other_side(variant, min
 
 
 @pytest.mark.parametrize("variant", VARIANTS)
+@pytest.mark.parametrize("tiny", [5e-324, -5e-324])
+def test_ray_that_never_leaves_a_split_plane_in_float64_finds_the_hit_on_the_other_side(variant, tiny):
+    """As above, with the plane's direction component a tiny nonzero number instead of 0 and a long
+    direction: over the ray's interval ``o + t d`` stays at y = 1 in float64, and so does the triangle
+    test's shear (``d_y / d_x`` underflows to 0), which hits the fin at t = 5e-6. The traversal took
+    the one child the sign of ``d_y`` points into and returned the wall at t = 8e-6 (found by the
+    soak of the direction-magnitude property). With ``|d| = 1`` the shear keeps a subnormal and the
+    test sees the ray pass just off the fin's edge: the wall, as the oracle says."""
+    scene = fin_scene()
+    tree = build_kdtree(scene, variant, KDTreeConfig(min_leaf_size=1), cache=False)
+    origins = np.array([[-5.0, 1.0, 0.0], [-5.0, 1.0, 0.5], [-5.0, 1.0, 0.0]])
+    directions = np.array([[1e6, tiny, 0.0], [1e6, tiny, -1e5], [1.0, tiny, 0.0]])
+    expected = intersect_brute_force(scene.vertices, scene.triangles, origins, directions)
+    assert expected[1][0] == 0 and expected[1][1] == 0  # the fin, on the plane's other side for tiny < 0
+    t, tri, _, _ = tree.intersect(origins, directions)
+    np.testing.assert_array_equal(tri, expected[1])
+    np.testing.assert_allclose(t, expected[0], rtol=1e-12)
+    assert tree.occluded(origins, directions, expected[0] * 1.5).all()
+    assert (tree.occluded(origins, directions, expected[0] * 0.999) == [False, False, False]).all()
+    packets = tree.intersect(origins, directions, packets=True)  # the camera rays' traversal
+    np.testing.assert_array_equal(packets[1], expected[1])
+
+
+@pytest.mark.parametrize("variant", VARIANTS)
 def test_negative_tmin_is_honoured_or_rejected(variant):
     """Two slanted triangles split apart at z = 1; a ray from z = 5 along +z with tmin = -10.
     The oracle's closest hit is triangle 0 at t = -4.75 (behind the origin); the trees must
