@@ -140,7 +140,7 @@ class ProductionConfig:
         against every triangle, so a few thousand at most).
     scaling_sizes : tuple of int
         Triangle counts of the build-scaling measurement (nested subsets of the scene), ascending;
-        the largest may not exceed ``triangles``.
+        counts above the scene's triangles are left out.
     """
 
     base_scene: str = "samurai-monastery"

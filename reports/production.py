@@ -108,12 +108,10 @@ def oracle_sample(scene, trees: dict, rays: int, seed: int) -> dict[str, int]:
     exact = (t, tri, np.zeros(len(t)), np.zeros(len(t)))
     row = {"oracle_rays": rays}
     for variant, tree in trees.items():
-        labels = compare_hits(scene, origins, directions, tree.intersect(origins, directions), exact,
-                              geometry=geometry).labels
-        row[f"oracle_agree_{variant}"] = int((labels == AGREE).sum())
-        row[f"oracle_ties_{variant}"] = int((labels == TIE).sum())
-        row[f"oracle_wrong_{variant}"] = int((labels == WRONG).sum())
-        row[f"oracle_unexplained_{variant}"] = int((labels == UNEXPLAINED).sum())
+        counts = compare_hits(scene, origins, directions, tree.intersect(origins, directions), exact,
+                              geometry=geometry).counts()
+        for name, label in (("agree", AGREE), ("ties", TIE), ("wrong", WRONG), ("unexplained", UNEXPLAINED)):
+            row[f"oracle_{name}_{variant}"] = counts[label]
     return row
 
 
