@@ -243,11 +243,37 @@ def span_hits(span_corners, first, count, okx, oky, okz, kx, ky, kz, sx, sy, sz,
 
 
 @njit(cache=True, inline="always")
+def leaves_through_face(lo, hi, o, d):
+    """Whether a ray starts on a face of the slab ``lo <= x <= hi`` and heads out of it."""
+    return (o == lo and d < 0.0) or (o == hi and d > 0.0)
+
+
+@njit(cache=True, inline="always")
+def clip_to_slab(lo, hi, o, d, t0, t1):
+    """``(t0, t1)`` narrowed to where ``o + t d`` is in the slab ``lo <= x <= hi`` (``d != 0``),
+    widened by :data:`INTERVAL_PAD` at both ends."""
+    # Divide (once per ray): 1 / d overflows for a subnormal d, and 0 * inf is NaN
+    # for an origin on the slab's face.
+    ta = (lo - o) / d
+    tb = (hi - o) / d
+    if ta > tb:
+        ta, tb = tb, ta
+    ta = ta / INTERVAL_PAD
+    tb = tb * INTERVAL_PAD
+    return (ta if ta > t0 else t0), (tb if tb < t1 else t1)
+
+
+@njit(cache=True, inline="always")
 def clip_to_box(box, ox, oy, oz, dx, dy, dz, tmin, tmax):
     """Slab test against box = (xmin, ymin, zmin, xmax, ymax, zmax).
 
     Zero direction components are handled explicitly (no 0 * inf), so axis-parallel
     rays are exact; the interval is widened by :data:`INTERVAL_PAD` at both ends.
+    A ray that starts on a face and heads out through it is clipped by that face only
+    if it moves off the face within the other axes' interval: with a component so small
+    (a subnormal) that ``o + t d == o`` in float64 over that interval, the ray lies in
+    the face, and the triangle test, whose shear then underflows, can find hits there
+    (as :func:`trace_ray` does for split planes).
     Returns (t_enter, t_exit); t_enter > t_exit means a miss.
     """
     t0 = tmin
@@ -261,20 +287,18 @@ def clip_to_box(box, ox, oy, oz, dx, dy, dz, tmin, tmax):
             if o[k] < lo or o[k] > hi:
                 return 1.0, 0.0
             continue
-        # Divide (once per ray): 1 / d overflows for a subnormal d, and 0 * inf is NaN
-        # for an origin on the slab's face.
-        ta = (lo - o[k]) / d[k]
-        tb = (hi - o[k]) / d[k]
-        if ta > tb:
-            ta, tb = tb, ta
-        ta = ta / INTERVAL_PAD
-        tb = tb * INTERVAL_PAD
-        if ta > t0:
-            t0 = ta
-        if tb < t1:
-            t1 = tb
+        if leaves_through_face(lo, hi, o[k], d[k]):
+            continue
+        t0, t1 = clip_to_slab(lo, hi, o[k], d[k], t0, t1)
         if t0 > t1:
             return 1.0, 0.0
+    for k in range(3):
+        lo = box[k]
+        hi = box[k + 3]
+        if leaves_through_face(lo, hi, o[k], d[k]) and o[k] + d[k] * t1 != o[k]:
+            t0, t1 = clip_to_slab(lo, hi, o[k], d[k], t0, t1)
+            if t0 > t1:
+                return 1.0, 0.0
     return t0, t1
 
 

@@ -142,9 +142,29 @@ def _load_lanes(box, origins, directions, n, watertight, lanes3, lanes, lane_int
             t0 = near if near > ent_l[r] else ent_l[r]
             t1 = far if far < ext_l[r] else ext_l[r]
             outside = (o < lo) | (o > hi)
-            missed[r] |= np.int64((parallel & outside) | ((d != 0.0) & (t0 > t1)))
-            ent_l[r] = ent_l[r] if parallel else t0
-            ext_l[r] = ext_l[r] if parallel else t1
+            skipped = parallel | ((o == lo) & (d < 0.0)) | ((o == hi) & (d > 0.0))
+            missed[r] |= np.int64((parallel & outside) | ((not skipped) & (t0 > t1)))
+            ent_l[r] = ent_l[r] if skipped else t0
+            ext_l[r] = ext_l[r] if skipped else t1
+    for axis in range(3):  # rays leaving through a face they start on, as clip_to_box
+        lo = box[axis]
+        hi = box[axis + 3]
+        o_row = origin[axis]
+        d_row = direction[axis]
+        for r in range(PACKET_SIZE):
+            o = o_row[r]
+            d = d_row[r]
+            leaving = ((o == lo) & (d < 0.0)) | ((o == hi) & (d > 0.0))
+            moves = leaving & (o + d * ext_l[r] != o)
+            ta = (lo - o) / d
+            tb = (hi - o) / d
+            near = (tb if ta > tb else ta) / INTERVAL_PAD
+            far = (ta if ta > tb else tb) * INTERVAL_PAD
+            t0 = near if near > ent_l[r] else ent_l[r]
+            t1 = far if far < ext_l[r] else ext_l[r]
+            missed[r] |= np.int64(moves & (t0 > t1))
+            ent_l[r] = t0 if moves else ent_l[r]
+            ext_l[r] = t1 if moves else ext_l[r]
     active = 0
     for r in range(PACKET_SIZE):
         lost = missed[r] != 0

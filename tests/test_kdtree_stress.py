@@ -391,22 +391,28 @@ def test_ray_that_never_leaves_a_split_plane_in_float64_finds_the_hit_on_the_oth
     np.testing.assert_array_equal(packets[1], expected[1])
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "found by the soak of test_stress_many_examples: a ray through a triangle's vertex along +z with |d| = 1e20 "
-    "and x, y components of 1e-300. The oracle's shear d_x / d_z = 1e-320 is a subnormal that leaves the edge "
-    "functions just nonzero, a hit at t = 1.85e-22; the trees' triangle test loses it and misses. Strict: a fix "
-    "must say so."))
 @pytest.mark.parametrize("variant", VARIANTS)
 def test_vertex_ray_with_a_subnormal_shear_finds_the_oracles_hit(variant):
+    """A ray along +z with ``|d| = 1e20`` through a triangle's vertex, whose x and y components
+    of -1e-300 point out of the triangle's box: it starts on the box's faces x = max and
+    y = min. In float64 ``o + t d == o`` in x and y over the box's z range, and the shear
+    ``d_x / d_z = -1e-320`` leaves the edge functions of that vertex at 0: the oracle hits
+    the vertex at t = 1.85e-22. The box clip cut the interval to t <= 0 on those faces, and
+    the trees missed (found by the soak of test_stress_many_examples)."""
     vertices = np.array([[0.27005592, -0.45781592, -0.90863824], [0.27967513, -0.46470046, -0.92573804],
                          [0.27120304, -0.4602462, -0.9282007]], np.float32)
     scene = Scene("vertex-ray", vertices, np.arange(3).reshape(1, 3), np.zeros(1, np.int32), [Material("m")])
-    origins = np.array([[float(vertices[1, 0]), float(vertices[1, 1]), -0.9442419892850934]])
-    directions = np.array([[-1e-300, -1e-300, 1e20]])
+    origins = np.array([[float(vertices[1, 0]), float(vertices[1, 1]), -0.9442419892850934]] * 2)
+    directions = np.array([[-1e-300, -1e-300, 1e20], [-1e-300, -1e-300, 1.0]])
     expected = intersect_brute_force(scene.vertices, scene.triangles, origins, directions)
-    assert expected[1][0] == 0  # the oracle hits the triangle at its vertex
+    # With |d_z| = 1 the shear is 1e-300 and the ray moves off the faces: both miss.
+    np.testing.assert_array_equal(expected[1], [0, -1])
     tree = build_kdtree(scene, variant, KDTreeConfig(), cache=False)
-    assert tree.intersect(origins, directions)[1][0] == 0
+    for packets in (False, True):
+        t, tri, _, _ = tree.intersect(origins, directions, packets=packets)
+        np.testing.assert_array_equal(tri, expected[1])
+        assert t[0] == expected[0][0]
+    np.testing.assert_array_equal(tree.occluded(origins, directions, 1e-21), [True, False])
 
 
 @pytest.mark.parametrize("variant", VARIANTS)
