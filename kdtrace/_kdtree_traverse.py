@@ -31,6 +31,11 @@ RAY_SCRATCH = 9
 #: by rounding. Leaves test triangles over (tmin, closest hit), not the node interval, so
 #: widening only ever adds visits.
 INTERVAL_PAD = 1.0 + 2.0 * (3.0 * 2.0**-53) / (1.0 - 3.0 * 2.0**-53)
+#: The float32 grid's finest spacing (the smallest subnormal): a vertex that is not on a
+#: split plane or box face is at least this far from it. A ray that starts on the plane and
+#: departs from it by less over its interval reaches no vertex off the plane, but the triangle
+#: test, whose shear is then subnormal and rounds, can see it on the plane: it lies in it.
+FLOAT32_FINEST = 2.0**-149
 
 
 @njit(cache=True, inline="always")
@@ -270,10 +275,9 @@ def clip_to_box(box, ox, oy, oz, dx, dy, dz, tmin, tmax):
     Zero direction components are handled explicitly (no 0 * inf), so axis-parallel
     rays are exact; the interval is widened by :data:`INTERVAL_PAD` at both ends.
     A ray that starts on a face and heads out through it is clipped by that face only
-    if it moves off the face within the other axes' interval: with a component so small
-    (a subnormal) that ``o + t d == o`` in float64 over that interval, the ray lies in
-    the face, and the triangle test, whose shear then underflows, can find hits there
-    (as :func:`trace_ray` does for split planes).
+    if it departs from the face by at least :data:`FLOAT32_FINEST` within the other
+    axes' interval; closer, it lies in the face, where the triangle test can find hits
+    (as :func:`trace_ray` treats split planes).
     Returns (t_enter, t_exit); t_enter > t_exit means a miss.
     """
     t0 = tmin
@@ -295,7 +299,7 @@ def clip_to_box(box, ox, oy, oz, dx, dy, dz, tmin, tmax):
     for k in range(3):
         lo = box[k]
         hi = box[k + 3]
-        if leaves_through_face(lo, hi, o[k], d[k]) and o[k] + d[k] * t1 != o[k]:
+        if leaves_through_face(lo, hi, o[k], d[k]) and abs(d[k]) * t1 >= FLOAT32_FINEST:
             t0, t1 = clip_to_slab(lo, hi, o[k], d[k], t0, t1)
             if t0 > t1:
                 return 1.0, 0.0
@@ -423,13 +427,12 @@ def trace_ray(
             else:
                 near = left + np.uint64(1)
                 far = left
-            if o_axis == split and (d_axis == 0.0 or o_axis + d_axis * ext == o_axis):
+            if o_axis == split and (d_axis == 0.0 or abs(d_axis) * ext < FLOAT32_FINEST):
                 # Lying in the plane: triangles of both children can touch the ray along
                 # their edges in the plane (a triangle reaching the plane from one side is
                 # stored on that side only), so visit both over the same interval. A ray
-                # whose component along the axis is so small (a subnormal) that in float64
-                # it never leaves the plane over the interval lies in it as well: the
-                # triangle test sees it there.
+                # that departs from the plane by less than FLOAT32_FINEST (a subnormal
+                # component) lies in it as well: the triangle test sees it there.
                 st_node[sp] = far
                 st_ent[sp] = ent
                 st_ext[sp] = ext

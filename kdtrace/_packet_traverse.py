@@ -34,6 +34,7 @@ from numba import njit, prange
 from kdtrace import _kdtree_build, _kdtree_layout, _kdtree_traverse, _stack
 from kdtrace._kdtree_build import LEAF
 from kdtrace._kdtree_traverse import (
+    FLOAT32_FINEST,
     INTERVAL_PAD,
     STACK_SIZE,
     decode_node,
@@ -155,7 +156,7 @@ def _load_lanes(box, origins, directions, n, watertight, lanes3, lanes, lane_int
             o = o_row[r]
             d = d_row[r]
             leaving = ((o == lo) & (d < 0.0)) | ((o == hi) & (d > 0.0))
-            moves = leaving & (o + d * ext_l[r] != o)
+            moves = leaving & (abs(d) * ext_l[r] >= FLOAT32_FINEST)
             ta = (lo - o) / d
             tb = (hi - o) / d
             near = (tb if ta > tb else ta) / INTERVAL_PAD
@@ -334,8 +335,8 @@ def _split_lanes(split, axis, active, lanes3, lanes):
         t_plane = (split - o_axis) * i_row[r]
         on_plane = o_axis == split
         parallel = d_axis == 0.0
-        # in the plane over the whole interval, in float64 (see trace_ray)
-        lying = on_plane & (parallel | (o_axis + d_axis * ext == o_axis))
+        # in the plane over the whole interval (see trace_ray)
+        lying = on_plane & (parallel | (abs(d_axis) * ext < FLOAT32_FINEST))
         one_child = parallel | on_plane
         near_only = (not one_child) & ((t_plane > ext * INTERVAL_PAD) | (t_plane <= 0.0) | (t_plane > best[r]))
         decided = one_child | near_only

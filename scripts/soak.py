@@ -72,8 +72,13 @@ def soak_one(name: str, examples: int) -> dict:
         "load_before": load_before, "load_after": os.getloadavg()[0],
         "commit": subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPOSITORY, capture_output=True,
                                  text=True).stdout.strip(),
-        "pytest_tail": output.strip().splitlines()[-15:], **stamp({}),
+        "failure": failure_message(output), "pytest_tail": output.strip().splitlines()[-15:], **stamp({}),
     }
+
+
+def failure_message(output: str, lines: int = 40) -> list[str]:
+    """The first ``lines`` lines of pytest's ``E`` lines (the assertion and the falsifying example), or []."""
+    return [line[1:].strip() for line in output.splitlines() if line.startswith("E ")][:lines]
 
 
 def write_table(records: list[dict], out: Path) -> Path:

@@ -50,6 +50,7 @@ from tests.strategies import (
     GENERIC_KINDS,
     RAY_KINDS,
     StressScene,
+    build_scene,
     make_rays,
     scale_directions,
     split_planes,
@@ -389,6 +390,28 @@ def test_ray_that_never_leaves_a_split_plane_in_float64_finds_the_hit_on_the_oth
     assert (tree.occluded(origins, directions, expected[0] * 0.999) == [False, False, False]).all()
     packets = tree.intersect(origins, directions, packets=True)  # the camera rays' traversal
     np.testing.assert_array_equal(packets[1], expected[1])
+
+
+@pytest.mark.parametrize("variant", VARIANTS)
+def test_rays_departing_from_a_split_plane_by_subnormal_steps_find_the_oracles_hit(variant):
+    """Terraces with levels at z = 0 (a split plane); two rays start on it with ``d_z = +-5e-324``.
+    At 0, float64 resolves such steps (``0 + d_z t`` is ``+-5e-324`` for t > 0.5), so the rays
+    leave the plane over their interval and the traversal took one child; but the triangle test,
+    whose shear rounds at that scale, hits edges lying in the plane on the other side (tri 50 at
+    t = 0.152 and tri 82 at t = 0.430). A ray that departs from the plane by less than the float32
+    grid's finest spacing visits both children (found by the soak of the direction-magnitude property)."""
+    scene = build_scene("terraces", 8, 1310, duplicates=0.1)
+    origins = np.array([[0.05242981775402539, 1.1563954152792624, 0.0], [0.027089371289944375, -0.8367347534765842, 0.0]])
+    directions = np.array([[-0.3441800034850191, -1.0528418462791622, -5e-324], [1.10011811694352, 0.04097834569776373, 5e-324]])
+    expected = intersect_brute_force(scene.vertices, scene.triangles, origins, directions)
+    np.testing.assert_array_equal(expected[1], [50, 82])
+    tree = build_kdtree(scene, variant, KDTreeConfig(clip_triangles=False, axis_selection="all", min_leaf_size=2), cache=False)
+    assert 0.0 in tree.node_split[(tree.node_meta != LEAF) & ((tree.node_meta & 3) == 2)]
+    for packets in (False, True):
+        t, tri, _, _ = tree.intersect(origins, directions, packets=packets)
+        np.testing.assert_array_equal(tri, expected[1])
+        np.testing.assert_array_equal(t, expected[0])
+    assert tree.occluded(origins, directions, expected[0] * 1.001).all()
 
 
 @pytest.mark.parametrize("variant", VARIANTS)

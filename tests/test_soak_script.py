@@ -53,3 +53,10 @@ def test_a_bad_shard_is_refused(soak, tmp_path, shard):
     with pytest.raises(SystemExit) as stopped:
         soak.main(["--shard", shard, "--out", str(tmp_path)])
     assert stopped.value.code == 2
+
+
+def test_the_failure_message_keeps_pytests_assertion_lines(soak):
+    output = "\n".join(["tests/x.py F", ">   assert bad == 0", "E   AssertionError: ray 3: o=[0, 0, 0]",
+                        "E       case=StressScene(...)", "tests/x.py:154: AssertionError", "1 failed"])
+    assert soak.failure_message(output) == ["AssertionError: ray 3: o=[0, 0, 0]", "case=StressScene(...)"]
+    assert soak.failure_message("1 passed") == []
