@@ -494,7 +494,8 @@ def _ray_sets(scene: Scene, rays_per_kind: int, seed: int) -> dict[str, tuple[np
 
 
 def check_scene(
-    scene: Scene, intersectors: dict[str, object], rays_per_kind: int, seed: int, progress: bool = True
+    scene: Scene, intersectors: dict[str, object], rays_per_kind: int, seed: int, progress: bool = True,
+    embree: object | None = None,
 ) -> pd.DataFrame:
     """Compare each intersector with Embree on every ray kind of :data:`RAY_KINDS`.
 
@@ -511,6 +512,9 @@ def check_scene(
         Seed of the ray generators.
     progress : bool
         Show a tqdm bar over the stages (ray generation, Embree, each intersector).
+    embree : references.embree.EmbreeIntersector, optional
+        Embree's intersector of ``scene`` when the caller has built one already (a second
+        BVH of a large scene costs its build time and memory); built here otherwise.
 
     Returns
     -------
@@ -530,7 +534,7 @@ def check_scene(
     geometry = TriangleGeometry.of(scene)
     stages.update()
     stages.set_description("embree build")
-    embree = EmbreeIntersector(scene)
+    embree = EmbreeIntersector(scene) if embree is None else embree
     stages.update()
     rows = []
     for kind, ray_set in ray_sets.items():

@@ -186,7 +186,7 @@ class Run:
         if stage == "agreement":
             self.progress.set_postfix_str("Embree agreement")
             agreement = check_scene(self.scene(), trees, settings.agreement_rays_per_kind, settings.seed,
-                                    progress=False)
+                                    progress=False, embree=self._embree or self.embree()[0])
             self.progress.set_postfix_str(f"{settings.oracle_rays} rays against the float64 oracle")
             row = table1.agreement_fields(agreement)
             row.pop("agreement_counts")

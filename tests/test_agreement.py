@@ -1,6 +1,7 @@
 """Classification of intersector disagreements, on injected faults."""
 
 import numpy as np
+import pandas as pd
 import pytest
 
 from kdtrace.oracle import intersect_brute_force
@@ -166,6 +167,19 @@ def test_check_scene_oracle_against_embree():
     assert (counted == df["rays"]).all()
     text = ag.format_table(df)
     assert text.splitlines()[0].startswith("| intersector") and "edge/vertex" in text
+    # An Embree intersector the caller built is used instead of a second BVH, with the same table.
+    from references.embree import EmbreeIntersector
+
+    class Counted(EmbreeIntersector):
+        calls = 0
+
+        def intersect(self, *args, **kwargs):
+            Counted.calls += 1
+            return super().intersect(*args, **kwargs)
+
+    given = ag.check_scene(scene, {"oracle": Oracle(scene)}, 300, seed=0, progress=False, embree=Counted(scene))
+    assert Counted.calls > 0
+    pd.testing.assert_frame_equal(given, df)
 
 
 def test_check_scene_finds_a_broken_intersector():
