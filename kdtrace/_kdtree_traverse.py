@@ -82,7 +82,10 @@ def intersect_triangle(tri, corners, ox, oy, oz, dx, dy, dz, tmin, tmax):
     if t_scaled <= tmin * abs_det or t_scaled >= tmax * abs_det:
         return np.inf, 0.0, 0.0
     inv = 1.0 / abs_det
-    return t_scaled * inv, u_scaled * inv, v_scaled * inv
+    t = t_scaled * inv
+    if not t > tmin:  # a subnormal t_scaled above tmin * abs_det = 0 can round to t = 0
+        return np.inf, 0.0, 0.0
+    return t, u_scaled * inv, v_scaled * inv
 
 
 @njit(cache=True, inline="always")
@@ -163,8 +166,13 @@ def intersect_triangle_watertight(tri, corners, okx, oky, okz, kx, ky, kz, sx, s
         okx, oky, okz, sx, sy, sz, tmin, tmax)
     if not hit:
         return np.inf, 0.0, 0.0
+    # The oracle's distance (divided, not times 1 / det), and in (tmin, tmax) once divided too:
+    # a subnormal t_scaled above tmin * det = 0 can round to t = 0.
+    t = t_scaled / det
+    if not (t > tmin and t < tmax):
+        return np.inf, 0.0, 0.0
     inv = 1.0 / det
-    return t_scaled * inv, w1 * inv, w2 * inv
+    return t, w1 * inv, w2 * inv
 
 
 @njit(cache=True, inline="always")

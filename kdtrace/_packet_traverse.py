@@ -255,8 +255,8 @@ def _test_triangle_uniform(tri, corners, kx, ky, kz, n, active, lanes3, lanes, l
         _, t_scaled, det, w1, w2 = watertight_decision(cax, cay, caz, cbx, cby, cbz, ccx, ccy, ccz, okx[r], oky[r],
                                                        okz[r], shx[r], shy[r], shz[r], 0.0, b)
         inv = 1.0 / det
-        t = t_scaled * inv
-        good = hit[r] & (t < b)  # hit[r]: this lane's decision of the first loop, on the same values
+        t = t_scaled / det
+        good = hit[r] & (t > 0.0) & (t < b)  # hit[r]: this lane's decision of the first loop, on the same values
         hit[r] = good
         best[r] = t if good else b
         u_out[r] = w1 * inv if good else u_out[r]
@@ -542,7 +542,8 @@ def _lanes_blocked_along(tri, corners, kx, ky, kz, group, lanes3, lanes, flags):
     for r in range(PACKET_SIZE):
         hit, t_scaled, det, _, _ = watertight_decision(cax, cay, caz, cbx, cby, cbz, ccx, ccy, ccz, okx[r], oky[r],
                                                        okz[r], shx[r], shy[r], shz[r], 0.0, best[r])
-        flags[r] = hit & (t_scaled * (1.0 / det) < best[r])
+        t = t_scaled / det
+        flags[r] = hit & (t > 0.0) & (t < best[r])
     return _lane_mask(flags) & group
 
 

@@ -415,6 +415,27 @@ def test_rays_departing_from_a_split_plane_by_subnormal_steps_find_the_oracles_h
 
 
 @pytest.mark.parametrize("variant", VARIANTS)
+@pytest.mark.parametrize("triangle_test", ["watertight", "moller-trumbore"])
+def test_a_hit_whose_distance_rounds_to_zero_is_not_reported(variant, triangle_test):
+    """Two rays along a terrace's edge at 1.6e9 from the origin, with ``5e-324`` for their zero
+    components, start on the triangle: the scaled distance is a subnormal above ``tmin * det = 0``,
+    but divided by ``det`` it rounds to t = 0, which is not in (tmin, tmax); the oracle misses. The
+    trees reported triangle 0 at t = 0 (found by the soak of the direction-magnitude property)."""
+    scene = build_scene("terraces", 2, 18795, permutation=(2, 0, 1), scale=15848.93192461114,
+                        offset=(1502327605.974392, -15848931.92461114, 1584893192.4611142), duplicates=0.1)
+    origins = np.array([[1502324110.301798, -15848932.0, 1584895289.2071924],
+                        [1502326748.5833116, -15848932.0, 1584905842.3332462]])
+    directions = np.array([[5e-324, 5e-324, -1.0], [1.0, 5e-324, 5e-324]])
+    expected = intersect_brute_force(scene.vertices, scene.triangles, origins, directions, triangle_test=triangle_test)
+    np.testing.assert_array_equal(expected[1], [-1, -1])
+    config = KDTreeConfig(clip_triangles=True, axis_selection="cycle", min_leaf_size=2, triangle_test=triangle_test)
+    tree = build_kdtree(scene, variant, config, cache=False)
+    for packets in (False, True):
+        np.testing.assert_array_equal(tree.intersect(origins, directions, packets=packets)[1], [-1, -1])
+    np.testing.assert_array_equal(tree.occluded(origins, directions, 1.0), [False, False])
+
+
+@pytest.mark.parametrize("variant", VARIANTS)
 def test_vertex_ray_with_a_subnormal_shear_finds_the_oracles_hit(variant):
     """A ray along +z with ``|d| = 1e20`` through a triangle's vertex, whose x and y components
     of -1e-300 point out of the triangle's box: it starts on the box's faces x = max and
