@@ -166,13 +166,12 @@ def intersect_triangle_watertight(tri, corners, okx, oky, okz, kx, ky, kz, sx, s
         okx, oky, okz, sx, sy, sz, tmin, tmax)
     if not hit:
         return np.inf, 0.0, 0.0
-    # The oracle's distance (divided, not times 1 / det), and in (tmin, tmax) once divided too:
-    # a subnormal t_scaled above tmin * det = 0 can round to t = 0.
+    # The oracle's divisions (1 / det overflows for a subnormal det), and t in (tmin, tmax) once
+    # divided too: a subnormal t_scaled above tmin * det = 0 can round to t = 0.
     t = t_scaled / det
     if not (t > tmin and t < tmax):
         return np.inf, 0.0, 0.0
-    inv = 1.0 / det
-    return t, w1 * inv, w2 * inv
+    return t, w1 / det, w2 / det
 
 
 @njit(cache=True, inline="always")

@@ -254,13 +254,12 @@ def _test_triangle_uniform(tri, corners, kx, ky, kz, n, active, lanes3, lanes, l
         b = best[r]
         _, t_scaled, det, w1, w2 = watertight_decision(cax, cay, caz, cbx, cby, cbz, ccx, ccy, ccz, okx[r], oky[r],
                                                        okz[r], shx[r], shy[r], shz[r], 0.0, b)
-        inv = 1.0 / det
         t = t_scaled / det
         good = hit[r] & (t > 0.0) & (t < b)  # hit[r]: this lane's decision of the first loop, on the same values
         hit[r] = good
         best[r] = t if good else b
-        u_out[r] = w1 * inv if good else u_out[r]
-        v_out[r] = w2 * inv if good else v_out[r]
+        u_out[r] = w1 / det if good else u_out[r]
+        v_out[r] = w2 / det if good else v_out[r]
     tri_out = lane_ints[_TRI]
     for r in range(n):
         tri_out[r] = tri if hit[r] else tri_out[r]

@@ -436,6 +436,30 @@ def test_a_hit_whose_distance_rounds_to_zero_is_not_reported(variant, triangle_t
 
 
 @pytest.mark.parametrize("variant", VARIANTS)
+def test_hits_with_a_subnormal_determinant_have_the_oracles_barycentrics(variant):
+    """Rays lying in a stack of coplanar triangles 3162 from the origin, ``|d| = 1e6`` with
+    components of 1e-310 across the plane: the determinant of their hits is subnormal, so
+    ``1 / det`` overflows. With ``t`` divided as the oracle does, the barycentrics were
+    ``w * (1 / det) = inf``; divided too, they are the oracle's (found by the soak of the
+    direction-magnitude property)."""
+    scene = build_scene("coplanar", 290, 425, flips=(False, True, False), scale=3162.2776601683795,
+                        offset=(0.0, 0.0, 3162.2776601683795), duplicates=0.5)
+    origins = np.array([[-2073.7491799681366, -2032.5415986720127, 3162.277587890625],
+                        [-976.141184556699, -139.19969741576483, 3162.277587890625]])
+    directions = np.array([[-1e-310, 1e6, 1e-310], [1e6, -1e-310, 1e-310]])
+    expected = intersect_brute_force(scene.vertices, scene.triangles, origins, directions)
+    np.testing.assert_array_equal(expected[1], [56, 191])
+    tree = build_kdtree(scene, variant, KDTreeConfig(clip_triangles=True, axis_selection="all", min_leaf_size=8),
+                        cache=False)
+    for packets in (False, True):
+        t, tri, u, v = tree.intersect(origins, directions, packets=packets)
+        assert (tri >= 0).all() and np.isfinite(u).all() and np.isfinite(v).all()
+        assert ((u >= 0.0) & (v >= 0.0) & (u + v <= 1.0 + BARY_EPS)).all()
+        # The second ray's hit is a tie among coplanar duplicates, which the local tree breaks otherwise.
+        assert (tri[0], t[0], u[0], v[0]) == (expected[1][0], expected[0][0], expected[2][0], expected[3][0])
+
+
+@pytest.mark.parametrize("variant", VARIANTS)
 def test_vertex_ray_with_a_subnormal_shear_finds_the_oracles_hit(variant):
     """A ray along +z with ``|d| = 1e20`` through a triangle's vertex, whose x and y components
     of -1e-300 point out of the triangle's box: it starts on the box's faces x = max and
