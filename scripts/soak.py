@@ -11,7 +11,7 @@ every other property side by side.
 
 Usage::
 
-    .venv/bin/python scripts/soak.py [--examples N] [-k PATTERN] [--shard I/N] [--again] [--out DIR]
+    .venv/bin/python scripts/soak.py [--examples N] [-k PATTERN] [--shard I/N] [--again] [--memory-gb G] [--out DIR]
 """
 
 from __future__ import annotations
@@ -20,6 +20,7 @@ import argparse
 import json
 import os
 import re
+import resource
 import subprocess
 import sys
 import time
@@ -52,20 +53,27 @@ def properties() -> list[str]:
     return names
 
 
-def soak_one(name: str, examples: int) -> dict:
-    """Run one property with ``examples`` examples; its record (see the module docstring)."""
+def soak_one(name: str, examples: int, memory_bytes: int | None = None) -> dict:
+    """Run one property with ``examples`` examples; its record (see the module docstring).
+
+    ``memory_bytes`` caps the pytest process's address space (``RLIMIT_AS``), so that an example
+    that runs away with memory fails with a MemoryError that names it instead of being killed by
+    the kernel with the machine's memory (and the record's output) gone.
+    """
     load_before = os.getloadavg()[0]
     started = time.perf_counter()
     completed = subprocess.run(
         [sys.executable, "-m", "pytest", f"{TESTS}::{name}", "-m", "slow or not slow", "-p", "no:cacheprovider",
          "-q", "--hypothesis-show-statistics"],
-        cwd=REPOSITORY, env={**os.environ, "KDTRACE_SOAK_EXAMPLES": str(examples)}, capture_output=True, text=True)
+        cwd=REPOSITORY, env={**os.environ, "KDTRACE_SOAK_EXAMPLES": str(examples)}, capture_output=True, text=True,
+        preexec_fn=None if memory_bytes is None else lambda: resource.setrlimit(resource.RLIMIT_AS, (memory_bytes,) * 2))
     seconds = time.perf_counter() - started
     output = completed.stdout + completed.stderr
     counts = _COUNTS.search(output)
     generate = _SECONDS.search(output)
     return {
         "property": name, "examples_requested": examples, "passed": completed.returncode == 0,
+        "returncode": completed.returncode, "memory_limit_bytes": memory_bytes,
         "passing": int(counts.group(1)) if counts else None, "failing": int(counts.group(2)) if counts else None,
         "invalid": int(counts.group(3)) if counts else None,
         "generate_seconds": float(generate.group(1)) if generate else None, "wall_seconds": round(seconds, 1),
@@ -106,6 +114,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("-k", dest="pattern", default="", help="only properties whose name contains this")
     parser.add_argument("--shard", default="0/1", metavar="I/N",
                         help="only every N-th property, starting with the I-th (0-based), of those selected")
+    parser.add_argument("--memory-gb", type=float, default=8.0,
+                        help="address-space limit of each property's process, GiB (0: none)")
     parser.add_argument("--again", action="store_true", help="soak properties that already have a record")
     parser.add_argument("--out", type=Path, default=RESULTS, help="folder of the records and table (results/soak)")
     args = parser.parse_args(argv)
@@ -127,7 +137,7 @@ def main(argv: list[str] | None = None) -> int:
                 print(f"{name}: soaked before ({record['passing']} passing, {record['failing']} failing), skipped")
                 continue
         print(f"{name}: {args.examples} examples ...", flush=True)
-        record = soak_one(name, args.examples)
+        record = soak_one(name, args.examples, int(args.memory_gb * 2**30) if args.memory_gb else None)
         atomic_write_bytes(path, json.dumps(record, indent=1).encode())
         failed += not record["passed"]
         print(f"{name}: {record['passing']} passing, {record['failing']} failing, {record['wall_seconds']:.0f} s",

@@ -60,3 +60,9 @@ def test_the_failure_message_keeps_pytests_assertion_lines(soak):
                         "E       case=StressScene(...)", "tests/x.py:154: AssertionError", "1 failed"])
     assert soak.failure_message(output) == ["AssertionError: ray 3: o=[0, 0, 0]", "case=StressScene(...)"]
     assert soak.failure_message("1 passed") == []
+
+
+def test_a_property_past_the_memory_limit_fails_with_a_record_instead_of_being_killed(soak):
+    record = soak.soak_one(soak.properties()[0], 1, memory_bytes=200 * 2**20)  # too little to import numba
+    assert not record["passed"] and record["returncode"] != 0 and record["memory_limit_bytes"] == 200 * 2**20
+    assert record["pytest_tail"]  # pytest's own report of the failure, not an empty record of a killed process
