@@ -85,8 +85,16 @@ def soak_one(name: str, examples: int, memory_bytes: int | None = None) -> dict:
 
 
 def failure_message(output: str, lines: int = 40) -> list[str]:
-    """The first ``lines`` lines of pytest's ``E`` lines (the assertion and the falsifying example), or []."""
-    return [line[1:].strip() for line in output.splitlines() if line.startswith("E ")][:lines]
+    """The first ``lines`` lines of pytest's ``E`` lines (the assertion and the falsifying example) and of
+    hypothesis's failing test cases (``Failing test case: ...`` up to its closing parenthesis), or []."""
+    kept, in_case = [], False
+    for line in output.splitlines():
+        text = line.lstrip(" |")
+        in_case = in_case or text.startswith("Failing test case:")
+        if line.startswith("E ") or in_case:
+            kept.append(line[1:].strip() if line.startswith("E ") else text.strip())
+        in_case = in_case and text.rstrip() != ")"
+    return kept[:lines]
 
 
 def write_table(records: list[dict], out: Path) -> Path:

@@ -66,3 +66,9 @@ def test_a_property_past_the_memory_limit_fails_with_a_record_instead_of_being_k
     record = soak.soak_one(soak.properties()[0], 1, memory_bytes=200 * 2**20)  # too little to import numba
     assert not record["passed"] and record["returncode"] != 0 and record["memory_limit_bytes"] == 200 * 2**20
     assert record["pytest_tail"]  # pytest's own report of the failure, not an empty record of a killed process
+
+
+def test_the_failure_message_keeps_the_failing_cases_of_an_exception_group(soak):
+    output = "\n".join(["  | MemoryError: Allocation failed", "    | Failing test case: test_x(", "    |     case=S(1),",
+                        "    |     seed=3,", "    | )", "    | Explanation:", "=== 1 failed ==="])
+    assert soak.failure_message(output) == ["Failing test case: test_x(", "case=S(1),", "seed=3,", ")"]
