@@ -497,6 +497,13 @@ def trace_ray(
     return best_t, best_tri, best_u, best_v, visited, tests
 
 
+#: :func:`trace_ray` compiled once and called instead of inlined, for the path tracer's one-by-one
+#: fallbacks of its camera and first-hit shadow packets: off the hot path, and each inlined copy cost
+#: about 25 s of compilation (the path tracer's kernel compiled in 214 s instead of 267 s, idle; frames
+#: as fast within the machine's noise).
+trace_ray_called = njit(cache=True)(trace_ray.py_func)
+
+
 @njit(cache=True, inline="always")
 def ray_scratch():
     """:func:`trace_ray`'s per-thread buffers ``(st_node, st_ent, st_ext, ray)``, on the stack of

@@ -36,7 +36,7 @@ import numpy as np
 from numba import literally, njit, prange
 
 from kdtrace import _kdtree_build, _kdtree_layout, _kdtree_traverse, _packet_traverse, _stack
-from kdtrace._kdtree_traverse import intersect_tree_triangle, ray_scratch, trace_ray, triangle_test_setup
+from kdtrace._kdtree_traverse import intersect_tree_triangle, ray_scratch, trace_ray, trace_ray_called, triangle_test_setup
 from kdtrace._packet_traverse import (
     PACKET_BEST,
     PACKET_SIZE,
@@ -674,7 +674,7 @@ def render_tile(
         if not (camera_packets and trace_packet(nodes, splits, refs, box, corners, origins, directions, lanes_used,
                                                 np.inf, watertight, lane_scratch)):
             for r in range(lanes_used):
-                t, tri, u, v, _, _ = trace_ray(nodes, splits, refs, box, corners, span_corners, cam[0], cam[1], cam[2],
+                t, tri, u, v, _, _ = trace_ray_called(nodes, splits, refs, box, corners, span_corners, cam[0], cam[1], cam[2],
                                                directions[r, 0], directions[r, 1], directions[r, 2], 0.0, np.inf,
                                                False, watertight, st_node, st_ent, st_ext, ray)
                 lanes[PACKET_BEST, r] = t
@@ -708,7 +708,7 @@ def render_tile(
                                       lane_scratch)
         else:
             for q in range(shadows):
-                _, blocker, _, _, _, _ = trace_ray(
+                _, blocker, _, _, _, _ = trace_ray_called(
                     nodes, splits, refs, box, corners, span_corners, shadow_origins[q, 0], shadow_origins[q, 1],
                     shadow_origins[q, 2], shadow_directions[q, 0], shadow_directions[q, 1], shadow_directions[q, 2],
                     0.0, shadow_extra[q, 0], True, watertight, st_node, st_ent, st_ext, ray)
