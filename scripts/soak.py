@@ -97,6 +97,22 @@ def failure_message(output: str, lines: int = 40) -> list[str]:
     return kept[:lines]
 
 
+def outcome(record: dict) -> str:
+    """``passed``, ``failed`` (hypothesis found failing examples) or ``stopped`` (the run ended before
+    hypothesis's statistics, e.g. by a MemoryError or a signal), with the exception's name where known."""
+    if record["passed"]:
+        return "passed"
+    if record["failing"]:
+        return "failed"
+    error = next((line.split(":")[0].split()[-1] for line in reversed(record.get("pytest_tail", []))
+                  if re.search(r"\w+Error\b|\w+Exception\b", line.split(":")[0])), None)
+    return f"stopped ({error})" if error else f"stopped (exit {record.get('returncode', '?')})"
+
+
+def _count(value) -> str:
+    return "–" if value is None else str(value)
+
+
 def write_table(records: list[dict], out: Path) -> Path:
     """``OUT/README.md``: one row per soaked property."""
     lines = ["# Soak of the KD-tree properties", "",
@@ -105,12 +121,13 @@ def write_table(records: list[dict], out: Path) -> Path:
              "wrong/unexplained classifier. Seconds depend on the load: two shards side by side (`--shard`) put it "
              "near 2 and give each property one numba thread. One record per property in [properties/](properties/).",
              "",
-             "| property | examples passing | failing | invalid (filtered) | seconds | load before | numba threads | "
-             "commit | machine |",
-             "|---|---:|---:|---:|---:|---:|---:|---|---|"]
+             "| property | outcome | examples passing | failing | invalid (filtered) | seconds | load before | "
+             "numba threads | commit | machine |",
+             "|---|---|---:|---:|---:|---:|---:|---:|---|---|"]
     for record in records:
         machine = record.get("machine", {})
-        lines.append(f"| `{record['property']}` | {record['passing']} | {record['failing']} | {record['invalid']} | "
+        lines.append(f"| `{record['property']}` | {outcome(record)} | {_count(record['passing'])} | "
+                     f"{_count(record['failing'])} | {_count(record['invalid'])} | "
                      f"{record['wall_seconds']:.0f} | {record['load_before']:.2f} | {machine.get('numba_threads', '?')} | "
                      f"{record['commit']} | {machine.get('cpu', '?')} [{machine.get('cpu_isa', '?')}] |")
     return atomic_write_bytes(out / "README.md", ("\n".join(lines) + "\n").encode())

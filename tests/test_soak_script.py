@@ -72,3 +72,14 @@ def test_the_failure_message_keeps_the_failing_cases_of_an_exception_group(soak)
     output = "\n".join(["  | MemoryError: Allocation failed", "    | Failing test case: test_x(", "    |     case=S(1),",
                         "    |     seed=3,", "    | )", "    | Explanation:", "=== 1 failed ==="])
     assert soak.failure_message(output) == ["Failing test case: test_x(", "case=S(1),", "seed=3,", ")"]
+
+
+def test_the_table_says_how_each_property_ended(soak, tmp_path):
+    stopped = {**fake_record("test_b", 7), "passed": False, "passing": None, "failing": None, "invalid": None,
+               "returncode": 1, "pytest_tail": ["    | MemoryError: Allocation failed (probably too large).", "1 failed"]}
+    failed = {**fake_record("test_c", 7), "passed": False, "passing": 5, "failing": 1}
+    killed = {**stopped, "property": "test_d", "pytest_tail": [], "returncode": -9}
+    table = soak.write_table([fake_record("test_a", 7), stopped, failed, killed], tmp_path).read_text()
+    rows = {line.split("|")[1].strip(" `"): line.split("|")[2].strip() for line in table.splitlines() if "`test_" in line}
+    assert rows == {"test_a": "passed", "test_b": "stopped (MemoryError)", "test_c": "failed", "test_d": "stopped (exit -9)"}
+    assert "| – | – | – |" in table
