@@ -157,7 +157,7 @@ def _best_split_on_axis(lo, hi, planar, n, bmin, bmax, axis, area, k_t, k_i, emp
 
 @njit(cache=True)
 def build_naive(v0, v1, v2, triangle_ids, root_min, root_max, k_t, k_i, min_leaf, max_depth, cycle_axes, empty_bonus, clip,
-                centroids):
+                centroids, max_refs):
     """Build the naive SAH KD-tree (Algorithm 1): only leaves hold triangles.
 
     Parameters
@@ -185,10 +185,16 @@ def build_naive(v0, v1, v2, triangle_ids, root_min, root_max, k_t, k_i, min_leaf
     centroids : bool
         True: try the planes through the node's triangle centroids (the paper's
         FindPlaneSAH); False: through every triangle bound (the exact SAH sweep).
+    max_refs : int
+        Reference budget: a node whose split would bring the references of the leaves and of
+        the nodes still to build above it becomes a leaf. SAH and the depth limit alone let a
+        stack of overlapping coplanar triangles double its references at every level (1,599
+        triangles asked for over 6 GB).
 
     Returns
     -------
-    node_meta, node_split, node_start, node_count, refs, node_area, max_depth_reached
+    node_meta, node_split, node_start, node_count, refs, node_area, max_depth_reached, capped
+        ``capped``: the budget made at least one leaf.
     """
     meta, split, start_of, count_of, area_of = _grow_nodes(np.empty(0, np.int32), np.empty(0, np.float32),
                                                           np.empty(0, np.int32), np.empty(0, np.int32),
@@ -212,9 +218,12 @@ def build_naive(v0, v1, v2, triangle_ids, root_min, root_max, k_t, k_i, min_leaf
     centroid = (v0 + v1 + v2) / 3.0 if centroids else np.empty((0, 3))
     depth_reached = 0
 
+    pending = triangle_ids.shape[0]  # references of the nodes on the stack
+    capped = False
     while sp > 0:
         sp -= 1
         node, depth, start, end = st_node[sp], st_depth[sp], st_start[sp], st_end[sp]
+        pending -= end - start
         bmin[:] = st_bounds[sp, :3]
         bmax[:] = st_bounds[sp, 3:]
         depth_reached = max(depth_reached, depth)
@@ -266,10 +275,6 @@ def build_naive(v0, v1, v2, triangle_ids, root_min, root_max, k_t, k_i, min_leaf
             refs, n_refs = _write_leaf(meta, start_of, count_of, node, refs, n_refs, work[start:end])
             continue
 
-        meta, split, start_of, count_of, area_of, left = _add_children(meta, split, start_of, count_of, area_of,
-                                                                       n_nodes, node, best_axis, best_pos)
-        n_nodes += 2
-
         # Partition: right list first (it is processed last), then the left list above it.
         # Clipped bounds decide (perfect splits); on the unclipped path they decide as the
         # raw ones would, the split lying inside the box.
@@ -279,6 +284,14 @@ def build_naive(v0, v1, v2, triangle_ids, root_min, root_max, k_t, k_i, min_leaf
             goes_right, goes_left = _sides(tri_min[k, best_axis], tri_max[k, best_axis], best_pos)
             n_right += goes_right
             n_left += goes_left
+        if n_refs + pending + n_right + n_left > max_refs:
+            capped = True
+            refs, n_refs = _write_leaf(meta, start_of, count_of, node, refs, n_refs, work[start:end])
+            continue
+        pending += n_right + n_left
+        meta, split, start_of, count_of, area_of, left = _add_children(meta, split, start_of, count_of, area_of,
+                                                                       n_nodes, node, best_axis, best_pos)
+        n_nodes += 2
         work = _ensure_capacity(work, end + n_right + n_left)
         write_right = end
         write_left = end + n_right
@@ -295,11 +308,12 @@ def build_naive(v0, v1, v2, triangle_ids, root_min, root_max, k_t, k_i, min_leaf
                             bmin, bmax, end, end + n_right, end + n_right + n_left)
 
     return (meta[:n_nodes].copy(), split[:n_nodes].copy(), start_of[:n_nodes].copy(), count_of[:n_nodes].copy(),
-            refs[:n_refs].copy(), area_of[:n_nodes].copy(), depth_reached)
+            refs[:n_refs].copy(), area_of[:n_nodes].copy(), depth_reached, capped)
 
 
 @njit(cache=True)
-def build_presorted(v0, v1, v2, triangle_ids, root_min, root_max, k_t, k_i, min_leaf, max_depth, cycle_axes, empty_bonus):
+def build_presorted(v0, v1, v2, triangle_ids, root_min, root_max, k_t, k_i, min_leaf, max_depth, cycle_axes, empty_bonus,
+                     max_refs):
     """:func:`build_naive` with ``clip=False`` in O(N log N): the same tree, sorted once.
 
     :func:`build_naive` sorts every node's triangle bounds along each axis, O(n log n) per
@@ -312,7 +326,8 @@ def build_presorted(v0, v1, v2, triangle_ids, root_min, root_max, k_t, k_i, min_
     triangle's bounds along every axis, so they stay with :func:`build_naive`.
 
     Parameters and returns as :func:`build_naive` (without ``clip`` and ``centroids``: the
-    sweep tries every triangle bound).
+    sweep tries every triangle bound). The budget is checked in the same order, so the tree is
+    the same with it too.
     """
     n_tris = v0.shape[0]
     # Axis-major bounds: a node's sweep gathers along one axis, from one 8-byte-per-triangle array.
@@ -346,12 +361,15 @@ def build_presorted(v0, v1, v2, triangle_ids, root_min, root_max, k_t, k_i, min_
     side = np.zeros(n_tris, np.uint8)  # bit 0: goes right, bit 1: goes left, of the node being split
     no_candidates = np.empty(0)
     depth_reached = 0
+    pending = m  # references of the nodes on the stack
+    capped = False
     while sp > 0:
         sp -= 1
         node, depth, start, end = st_node[sp], st_depth[sp], st_start[sp], st_end[sp]
         bmin[:] = st_bounds[sp, :3]
         bmax[:] = st_bounds[sp, 3:]
         n = (end - start) // 6
+        pending -= n
         depth_reached = max(depth_reached, depth)
         area = _surface_area(bmin, bmax)
         area_of[node] = area
@@ -382,9 +400,6 @@ def build_presorted(v0, v1, v2, triangle_ids, root_min, root_max, k_t, k_i, min_
         if best_axis < 0 or best_cost > k_i * n:
             refs, n_refs = _write_leaf(meta, start_of, count_of, node, refs, n_refs, work[start:start + n])
             continue
-        meta, split, start_of, count_of, area_of, left = _add_children(meta, split, start_of, count_of, area_of,
-                                                                       n_nodes, node, best_axis, best_pos)
-        n_nodes += 2
         # Stable partition of each list: the right child's lists first (processed last).
         # Each triangle's side is decided once, from the first list, and looked up by the
         # six list passes (one byte per triangle instead of two gathered bounds).
@@ -396,6 +411,14 @@ def build_presorted(v0, v1, v2, triangle_ids, root_min, root_max, k_t, k_i, min_
             n_right += goes_right
             n_left += goes_left
             side[t] = goes_right | (goes_left << 1)
+        if n_refs + pending + n_right + n_left > max_refs:
+            capped = True
+            refs, n_refs = _write_leaf(meta, start_of, count_of, node, refs, n_refs, work[start:start + n])
+            continue
+        pending += n_right + n_left
+        meta, split, start_of, count_of, area_of, left = _add_children(meta, split, start_of, count_of, area_of,
+                                                                       n_nodes, node, best_axis, best_pos)
+        n_nodes += 2
         # One slot of slack: a list's unconditional store past its last entry lands on the
         # next list's first slot (written later) or, for the last left list, on the slack.
         work = _ensure_capacity(work, end + 6 * (n_right + n_left) + 1)
@@ -412,7 +435,7 @@ def build_presorted(v0, v1, v2, triangle_ids, root_min, root_max, k_t, k_i, min_
         sp = _push_children(st_node, st_depth, st_start, st_end, st_bounds, sp, left, depth + 1, best_axis, best_pos,
                             bmin, bmax, right_start, left_start, left_start + 6 * n_left)
     return (meta[:n_nodes].copy(), split[:n_nodes].copy(), start_of[:n_nodes].copy(), count_of[:n_nodes].copy(),
-            refs[:n_refs].copy(), area_of[:n_nodes].copy(), depth_reached)
+            refs[:n_refs].copy(), area_of[:n_nodes].copy(), depth_reached, capped)
 
 
 @njit(cache=True, inline="always")

@@ -368,14 +368,23 @@ def _compile_build_kernels() -> None:
     v1 = v0 + [1.0, 0.0, 0.0]
     v2 = v0 + [0.0, 1.0, 0.0]
     args = (v0, v1, v2, np.arange(2, dtype=np.int32), v0.min(0), v2.max(0) + 1.0, 1.0, 1.0, 0, 4, False, 0.0)
-    for arrays in (build_kernels.build_naive(*args, True, False), build_kernels.build_presorted(*args)):
+    budget = MIN_REFERENCE_BUDGET
+    for arrays in (build_kernels.build_naive(*args, True, False, budget), build_kernels.build_presorted(*args, budget)):
         build_kernels.pull_up(arrays[0], arrays[2], arrays[3], arrays[4])
 
 
 #: Upper bound of a build's working memory per triangle, in bytes: measured peaks are 291 (Crytek
 #: Sponza, 262,267 triangles, 2.4 references each) and 248 (a random soup of 100,000 overlapping
-#: triangles, 8.5 references each); 1 KiB leaves room for trees with more references.
+#: triangles, 8.5 references each); 1 KiB leaves room for trees with more references, up to
+#: the budget of :data:`MAX_REFERENCES_PER_TRIANGLE`.
 BUILD_BYTES_PER_TRIANGLE = 1024
+#: A tree holds at most this many references per triangle (or :data:`MIN_REFERENCE_BUDGET`):
+#: nodes past the budget become leaves. Real scenes need 2.4 (Crytek Sponza) to 8.5 (an
+#: overlapping random soup); without a budget a stack of overlapping coplanar triangles doubles
+#: its references at every level until the depth limit.
+MAX_REFERENCES_PER_TRIANGLE = 16
+#: The budget of a small scene, references (a few huge triangles over many small ones).
+MIN_REFERENCE_BUDGET = 65536
 
 
 def build_bytes(triangles: int) -> int:
@@ -401,11 +410,16 @@ def _build_arrays(scene: Scene, variant: str, config: KDTreeConfig):
     # Bounding-box splits at triangle bounds sort once (O(N log N)); perfect splits and
     # centroid candidates re-sort per node (the same tree either way for clip_triangles =
     # false and split_candidates = "bounds": tests/test_kdtree.py).
+    budget = max(MAX_REFERENCES_PER_TRIANGLE * len(triangle_ids), MIN_REFERENCE_BUDGET)
     if config.clip_triangles or config.split_candidates == "centroids":
-        built = build_kernels.build_naive(*args, config.clip_triangles, config.split_candidates == "centroids")
+        built = build_kernels.build_naive(*args, config.clip_triangles, config.split_candidates == "centroids", budget)
     else:
-        built = build_kernels.build_presorted(*args)
-    meta, split, start, count, refs, node_area, depth_reached = built
+        built = build_kernels.build_presorted(*args, budget)
+    meta, split, start, count, refs, node_area, depth_reached, capped = built
+    if capped:
+        warnings.warn(f"scene {scene.name!r}: the {variant} KD-tree reached its budget of {budget:,} triangle "
+                      f"references ({MAX_REFERENCES_PER_TRIANGLE} per triangle); the nodes past it are leaves",
+                      RuntimeWarning, stacklevel=3)
     if variant == "local":
         start, count, refs = build_kernels.pull_up(meta, start, count, refs)
     seconds = time.perf_counter() - started

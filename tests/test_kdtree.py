@@ -191,12 +191,22 @@ def test_presorted_build_is_the_per_node_sorting_build(scene_kind, axis_selectio
     args = (*(np.ascontiguousarray(corners[:, k]) for k in range(3)), ids, lo, hi, config.traversal_cost,
             config.intersection_cost, config.min_leaf_size, max_depth_for(len(ids), config),
             axis_selection == "cycle", config.empty_bonus)
-    reference = kernels.build_naive(*args, False, False)
-    fast = kernels.build_presorted(*args)
+    unlimited = 2**40
+    reference = kernels.build_naive(*args, False, False, unlimited)
+    fast = kernels.build_presorted(*args, unlimited)
     assert len(reference[0]) > 15  # a tree, not a single leaf
     for expected, got in zip(reference[:6], fast[:6], strict=True):
         np.testing.assert_array_equal(got, expected)
-    assert fast[6] == reference[6]
+    assert fast[6] == reference[6] and not fast[7] and not reference[7]
+    # A reference budget below the tree's references caps both builds at the same nodes (a budget
+    # is at least the triangle count: the root alone holds that many).
+    total = len(reference[4])
+    budget = max(len(ids), total * 3 // 4)
+    reference = kernels.build_naive(*args, False, False, budget)
+    fast = kernels.build_presorted(*args, budget)
+    assert reference[7] == fast[7] == (budget < total) and len(fast[4]) <= budget
+    for expected, got in zip(reference[:6], fast[:6], strict=True):
+        np.testing.assert_array_equal(got, expected)
 
 
 def test_centroid_candidates_split_at_centroids_on_the_cycled_axis(big_and_small_triangles):

@@ -459,6 +459,35 @@ def test_hits_with_a_subnormal_determinant_have_the_oracles_barycentrics(variant
         assert (tri[0], t[0], u[0], v[0]) == (expected[1][0], expected[0][0], expected[2][0], expected[3][0])
 
 
+@pytest.mark.parametrize("clip_triangles", [False, True])
+def test_a_stack_of_overlapping_coplanar_triangles_stays_within_the_reference_budget(clip_triangles):
+    """1,599 overlapping triangles in one plane: the SAH found every split worth it while each one
+    kept most triangles on both sides, so the references doubled at every level until the depth
+    limit (over 6 GB at depth 22; found by the soak of test_stress_many_examples, killed by the
+    kernel at 24 GB). The budget makes the rest leaves, with a warning, and the tree still gives
+    the oracle's hits."""
+    from kdtrace.kdtree import MAX_REFERENCES_PER_TRIANGLE, MIN_REFERENCE_BUDGET
+
+    scene = build_scene("coplanar", 1599, 457, permutation=(2, 1, 0), scale=7943.282347242814,
+                        offset=(-23829.84704172844, 0.0, 7943.282347242814))
+    config = KDTreeConfig(min_leaf_size=2, clip_triangles=clip_triangles)
+    budget = max(MAX_REFERENCES_PER_TRIANGLE * len(scene.triangles), MIN_REFERENCE_BUDGET)
+    for variant in VARIANTS:
+        with pytest.warns(RuntimeWarning, match="reached its budget"):
+            tree = build_kdtree(scene, variant, config, cache=False)
+        assert tree.stats["triangle_references"] <= budget
+        rng = np.random.default_rng(5)
+        lo, hi = scene.bounds
+        origins = np.column_stack([np.full(200, lo[0] - 100.0), rng.uniform(lo[1], hi[1], 200), rng.uniform(lo[2], hi[2], 200)])
+        directions = np.column_stack([np.ones(200), rng.normal(0, 0.01, 200), rng.normal(0, 0.01, 200)])
+        expected = intersect_brute_force(scene.vertices, scene.triangles, origins, directions)
+        t, tri, _, _ = tree.intersect(origins, directions)
+        assert (tri >= 0).mean() > 0.5
+        # The stack's triangles tie up to rounding: the oracle's distance, from any of them.
+        np.testing.assert_array_equal(tri >= 0, expected[1] >= 0)
+        np.testing.assert_allclose(t, expected[0], rtol=1e-12)
+
+
 @pytest.mark.parametrize("variant", VARIANTS)
 def test_vertex_ray_with_a_subnormal_shear_finds_the_oracles_hit(variant):
     """A ray along +z with ``|d| = 1e20`` through a triangle's vertex, whose x and y components
