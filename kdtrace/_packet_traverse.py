@@ -91,6 +91,16 @@ def _lane_mask(flags):
 
 
 @njit(cache=True, inline="always")
+def _lane_slab(lo, hi, o, d, ent, ext):
+    """:func:`kdtrace._kdtree_traverse.clip_to_slab` with selects instead of a branch (lane loops)."""
+    ta = (lo - o) / d
+    tb = (hi - o) / d
+    near = (tb if ta > tb else ta) / INTERVAL_PAD
+    far = (ta if ta > tb else tb) * INTERVAL_PAD
+    return (near if near > ent else ent), (far if far < ext else ext)
+
+
+@njit(cache=True, inline="always")
 def _load_lanes(box, origins, directions, n, watertight, lanes3, lanes, lane_ints):
     """Fill the lane state of rays ``0 .. n-1``, each over ``(0, lanes[_BEST, r])``.
 
@@ -134,14 +144,7 @@ def _load_lanes(box, origins, directions, n, watertight, lanes3, lanes, lane_int
             d = d_row[r]
             parallel = d == 0.0
             inv_row[r] = np.inf if parallel else 1.0 / d
-            ta = (lo - o) / d
-            tb = (hi - o) / d
-            near = tb if ta > tb else ta
-            far = ta if ta > tb else tb
-            near = near / INTERVAL_PAD
-            far = far * INTERVAL_PAD
-            t0 = near if near > ent_l[r] else ent_l[r]
-            t1 = far if far < ext_l[r] else ext_l[r]
+            t0, t1 = _lane_slab(lo, hi, o, d, ent_l[r], ext_l[r])
             outside = (o < lo) | (o > hi)
             skipped = parallel | ((o == lo) & (d < 0.0)) | ((o == hi) & (d > 0.0))
             missed[r] |= np.int64((parallel & outside) | ((not skipped) & (t0 > t1)))
@@ -157,12 +160,7 @@ def _load_lanes(box, origins, directions, n, watertight, lanes3, lanes, lane_int
             d = d_row[r]
             leaving = ((o == lo) & (d < 0.0)) | ((o == hi) & (d > 0.0))
             moves = leaving & (abs(d) * ext_l[r] >= FLOAT32_FINEST)
-            ta = (lo - o) / d
-            tb = (hi - o) / d
-            near = (tb if ta > tb else ta) / INTERVAL_PAD
-            far = (ta if ta > tb else tb) * INTERVAL_PAD
-            t0 = near if near > ent_l[r] else ent_l[r]
-            t1 = far if far < ext_l[r] else ext_l[r]
+            t0, t1 = _lane_slab(lo, hi, o, d, ent_l[r], ext_l[r])
             missed[r] |= np.int64(moves & (t0 > t1))
             ent_l[r] = t0 if moves else ent_l[r]
             ext_l[r] = t1 if moves else ext_l[r]
