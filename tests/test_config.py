@@ -22,7 +22,7 @@ from kdtrace.config import (
 def test_dataclass_defaults_are_the_shipped_defaults(section, cls):
     """``KDTreeConfig(min_leaf_size=1)`` and the like (tests, user code) must fill the fields they
     leave out with what ``defaults.toml`` ships, or a change of a default there silently stops
-    reaching them (the leaf size moved from 4 to 8 on 2026-12-05 and had to be changed twice)."""
+    reaching them (a changed leaf size once had to be changed in two places)."""
     shipped = getattr(load_config(), section)
     bare = cls()
     differing = {field.name: (getattr(bare, field.name), getattr(shipped, field.name))

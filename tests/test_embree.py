@@ -11,7 +11,7 @@ from references.embree import EmbreeIntersector
 
 #: Embree's float32 t is within a few ulps of the exact distance, and which ulp depends on the
 #: ISA kernel it picks: exact on the AVX-512 machines, 1 - 2**-24 for t = 1 on an AVX2-only
-#: AMD EPYC (2026-12-02). Exact expectations would test the CPU, not the wrapper.
+#: AMD EPYC. Exact expectations would test the CPU, not the wrapper.
 EMBREE_T_RTOL = 4 * 2.0**-24
 
 
