@@ -318,7 +318,9 @@ def validate_rays(origins, directions, tmin=0.0, tmax=np.inf):
             raise ValueError(f"{name} has shape {array.shape} but there are {n} rays; pass {expected}") from None
         if np.isnan(array).any():
             raise ValueError(f"{name} must be a number, got NaN for ray {np.flatnonzero(np.isnan(array))[0]}")
-        bounds.append(np.ascontiguousarray(array))
+        # a fresh writable copy: a read-only view (what broadcast_to returns) is another numba
+        # signature, compiled again for every kernel it reaches
+        bounds.append(np.array(array, dtype=np.float64, order="C"))
     tmin, tmax = bounds
     unordered = np.flatnonzero(tmin > tmax)
     if len(unordered):

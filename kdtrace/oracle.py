@@ -166,8 +166,9 @@ def nearest_hits_fast(
     if n == 0 or len(keep) == 0:
         return t, tri
     soa = np.ascontiguousarray(corners.transpose(1, 2, 0))  # (vertex, axis, triangle)
-    tmin = np.ascontiguousarray(np.broadcast_to(np.asarray(tmin, dtype=np.float64), (n,)))
-    tmax = np.ascontiguousarray(np.broadcast_to(np.asarray(tmax, dtype=np.float64), (n,)))
+    # writable copies: a read-only array would be a second compiled signature of the kernel
+    tmin = np.array(np.broadcast_to(np.asarray(tmin, dtype=np.float64), (n,)), order="C")
+    tmax = np.array(np.broadcast_to(np.asarray(tmax, dtype=np.float64), (n,)), order="C")
     _oracle_kernels.nearest_hits(soa, origins, directions, tmin, tmax, t, tri)
     hit = tri >= 0
     tri[hit] = keep[tri[hit]]

@@ -18,7 +18,7 @@ from kdtrace._kdtree_traverse import (
     triangle_test_setup,
 )
 from kdtrace.config import KDTreeConfig
-from kdtrace.kdtree import VARIANTS, build_kdtree
+from kdtrace.kdtree import VARIANTS, build_kdtree, validate_rays
 from kdtrace.oracle import intersect_brute_force
 from kdtrace.scene import Material, Scene
 from references.agreement import UNEXPLAINED, compare_hits
@@ -362,6 +362,19 @@ def test_missing_or_mis_sized_tmin_tmax_are_clear_errors():
     with pytest.raises(ValueError, match=r"tmin has shape \(4, 1\) but there are 4 rays"):
         tree.intersect(origins, directions, tmin=np.zeros((4, 1)))
     assert tree.occluded(origins, directions, np.full(4, np.inf)).shape == (4,)
+
+
+def test_ray_bounds_reach_the_kernels_as_one_compiled_signature():
+    """A scalar, an array and a read-only array bound all become writable C float64 arrays:
+    numba compiles a read-only array as another signature of every traversal kernel (about a
+    minute of compilation each time), so the wrapper must not let one through."""
+    origins, directions = np.zeros((4, 3)), np.ones((4, 3))
+    read_only = np.full(4, np.inf)
+    read_only.flags.writeable = False
+    for tmax in (np.inf, np.full(4, np.inf), read_only, np.broadcast_to(np.inf, (4,))):
+        *_, tmin, tmax_out = validate_rays(origins, directions, 0.0, tmax)
+        for bound in (tmin, tmax_out):
+            assert bound.dtype == np.float64 and bound.flags.c_contiguous and bound.flags.writeable
 
 
 @pytest.mark.parametrize("variant", VARIANTS)
