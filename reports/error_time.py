@@ -504,10 +504,10 @@ def scene_rows(kind: str, version: int, measure_scene: Callable[..., dict], conf
 
     A row is cached in ``out_dir/rows/KIND/SCENE.json`` under a content key of the scene,
     ``version``, :data:`TIMING_REPEATS`, the report and reconstruction profiles, the
-    KD-tree and render settings, and the source of the renderer and (with ``networks``) of the
-    networks (:func:`reconstruction.fingerprint.networks_fingerprint`). A reused row is announced with the date it was
-    measured; each new row is written atomically as soon as it is measured, so an
-    interrupted run resumes at the next unfinished scene. The networks
+    KD-tree and render settings, and the source of the renderer and (with ``networks``) the
+    source and stored weights of the networks (:func:`reconstruction.fingerprint.networks_fingerprint`).
+    A reused row is announced with the date it was measured; each new row is written atomically
+    as soon as it is measured, so an interrupted run resumes at the next unfinished scene. The networks
     (:class:`Reconstruction`) are trained or loaded only when some row must be measured.
 
     Parameters
@@ -542,10 +542,14 @@ def scene_rows(kind: str, version: int, measure_scene: Callable[..., dict], conf
     models: list[Reconstruction] = []
     rows = []
     bar = tqdm(names, unit="scene", desc=f"{kind} ({profile_name})", disable=not progress)
+
+    def row_key(name: str) -> str:
+        return content_key(f"{kind}-row", version, renderer_fingerprint(), name, TIMING_REPEATS, settings,
+                           networks_fingerprint(recon) if networks else None)
+
     for name in bar:
         path = out_dir / "rows" / kind / f"{name}.json"
-        key = content_key(f"{kind}-row", version, renderer_fingerprint(), name, TIMING_REPEATS, settings,
-                          networks_fingerprint() if networks else None)
+        key = row_key(name)
         if not fresh and path.exists():
             saved = json.loads(path.read_text())
             if saved.get("key") == key:
@@ -560,7 +564,8 @@ def scene_rows(kind: str, version: int, measure_scene: Callable[..., dict], conf
         with freed_memory_retained():  # a scene's renders and reconstructions, timed, reuse freed memory
             row = measure_scene(name, config, profile_name, models[0], bar)
         row["load_average"] = [load_before, os.getloadavg()[0]]
-        record = {"key": key, "measured_at": time.strftime("%Y-%m-%d %H:%M:%S"), "row": row}
+        # keyed again: loading the networks may have trained them into the store, which changes their weights' digest
+        record = {"key": row_key(name), "measured_at": time.strftime("%Y-%m-%d %H:%M:%S"), "row": row}
         atomic_write_bytes(path, json.dumps(record, indent=1).encode())
         rows.append(row)
     return rows

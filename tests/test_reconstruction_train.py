@@ -422,3 +422,20 @@ def test_a_stored_model_is_reused_where_the_cache_lacks_it_and_checked(cache, tm
     (stored / "best.pt").write_bytes(b"truncated")
     with pytest.raises(ValueError, match="not a readable checkpoint"):
         run(tmp_path / "machine-c", nn.MSELoss())
+
+
+def test_the_networks_fingerprint_changes_with_the_stored_weights(tmp_path, monkeypatch):
+    """Cached sweep and pipeline rows are keyed by it: retraining into the store by the same code
+    must measure them again, and a store left as it was must reuse them."""
+    from reconstruction.fingerprint import networks_fingerprint
+
+    monkeypatch.setattr(train, "MODEL_STORE_ROOT", tmp_path)
+    profile = dataclasses.replace(DEFAULT_CONFIG.reconstruction.profile("quick"), model_store="store")
+    weights = tmp_path / "store" / "denoiser-0123" / "best.pt"
+    weights.parent.mkdir(parents=True)
+    weights.write_bytes(b"first weights")
+    first = networks_fingerprint(profile)
+    assert networks_fingerprint(profile) == first
+    weights.write_bytes(b"retrained weights")
+    assert networks_fingerprint(profile) != first
+    assert networks_fingerprint(dataclasses.replace(profile, model_store="")) == networks_fingerprint()

@@ -66,7 +66,7 @@ def test_generate_end_to_end_and_reuse(shared_scenes, isolated_cache, tmp_path, 
     assert "combined cbox-original: reusing the row" in captured.out + captured.err
     assert [m.value for m in again] == [m.value for m in metrics]
     # Networks trained or run by other code are other networks: the row is measured again.
-    monkeypatch.setattr(fingerprint, "networks_fingerprint", lambda: "other network code")
+    monkeypatch.setattr(fingerprint, "networks_fingerprint", lambda profile=None: "other network code")
     generate(config, "tiny", out, progress=False)
     assert "reusing the row" not in "".join(capsys.readouterr())
 
