@@ -12,7 +12,7 @@ random rays the triangle must be exactly the oracle's.
 
 All tests are deterministic (``derandomize=True``); the ``slow`` variant draws many
 more, larger examples (``pytest -m slow tests/test_kdtree_stress.py``). The soak run
-(``bash scripts/soak.sh``) sets ``KDTRACE_SOAK_EXAMPLES`` (10,000 there): every property
+(``.venv/bin/python scripts/soak.py``) sets ``KDTRACE_SOAK_EXAMPLES`` (10,000 there): every property
 then draws at least that many examples.
 
 Besides the classifier, the float64 watertight oracle judges every disagreement
@@ -68,7 +68,7 @@ pytestmark = [
 
 #: Slack on the barycentric range checks (the trees test u, v exactly; this only guards the asserts).
 BARY_EPS = 1e-12
-#: Examples per property in a soak run (``scripts/soak.sh``); 0 in the normal tiers.
+#: Examples per property in a soak run (``scripts/soak.py``); 0 in the normal tiers.
 SOAK_EXAMPLES = int(os.environ.get("KDTRACE_SOAK_EXAMPLES", "0"))
 #: Labels that fail a test: no explanation, or the oracle has a nearer hit.
 FAILING = (UNEXPLAINED, WRONG)
