@@ -11,7 +11,7 @@ The property, for OBJ + MTL (:mod:`kdtrace.io.obj`, :mod:`kdtrace.io.mtl`), PLY
 
 and never raises another exception type or a warning other than a ``SceneWarning``
 (NumPy's cast and overflow warnings are errors here), never runs longer than
-:data:`HANG_SECONDS` (a hard wall-clock guard, beside hypothesis' deadline), and never
+:data:`SLOW_SECONDS` of CPU time (and a timer stops it at :data:`HANG_SECONDS`), and never
 allocates more than :func:`memory_bound` bytes of traced memory (``tracemalloc`` peak,
 which includes NumPy's buffers) while parsing one input.
 
@@ -34,7 +34,9 @@ import math
 import re
 import shutil
 import signal
+import sys
 import tempfile
+import time
 import tracemalloc
 import warnings
 from pathlib import Path
@@ -52,8 +54,12 @@ from kdtrace.scene import Scene
 from kdtrace.scenes import SCENES_DIRECTORY, SHARED_SCENES_DIRECTORY, load_scene
 from tests.strategies import GRAMMAR_MTL, ODD_NUMBERS, fuzz, mutate, mutations, obj_files, ply_files, reencode
 
-#: Hard wall-clock bound on one parse: longer is a hang.
+#: Hard bound on the CPU seconds of one parse: longer is a hang (stopped by a CPU-time timer).
 HANG_SECONDS = 20.0
+#: CPU seconds one parse may take and still pass: a reader slower than this on a small input is
+#: a defect (quadratic parsing and the like). CPU time, not wall-clock time: a parse on a busy
+#: machine waits for a core without being slower.
+SLOW_SECONDS = 5.0
 #: Memory bound of one parse: this much plus :data:`MEMORY_PER_BYTE` per input byte.
 MEMORY_BASE = 16 * 2**20
 MEMORY_PER_BYTE = 200
@@ -66,7 +72,7 @@ def memory_bound(size: int) -> int:
 
 
 class Hang(AssertionError):
-    """The reader did not answer within :data:`HANG_SECONDS` (a failure hypothesis reports with its input)."""
+    """The reader did not answer within :data:`HANG_SECONDS` of CPU time (a failure hypothesis reports with its input)."""
 
 
 def bounded(load, size: int, scene_warnings: str = "ignore"):
@@ -76,11 +82,12 @@ def bounded(load, size: int, scene_warnings: str = "ignore"):
     ``SceneWarning`` is handled by the ``scene_warnings`` filter action.
     """
     def alarm(signum, frame):
-        raise Hang(f"no answer within {HANG_SECONDS} s")
+        raise Hang(f"no answer within {HANG_SECONDS} s of CPU time")
 
-    previous = signal.signal(signal.SIGALRM, alarm)
-    signal.setitimer(signal.ITIMER_REAL, HANG_SECONDS)
+    previous = signal.signal(signal.SIGPROF, alarm)
+    signal.setitimer(signal.ITIMER_PROF, HANG_SECONDS)  # counts this process's CPU time only
     tracemalloc.start()
+    started = time.process_time()
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("error")
@@ -89,12 +96,14 @@ def bounded(load, size: int, scene_warnings: str = "ignore"):
                 result = load()
             except SceneError as error:
                 result = error
+        seconds = time.process_time() - started
         peak = tracemalloc.get_traced_memory()[1]
     finally:
         tracemalloc.stop()
-        signal.setitimer(signal.ITIMER_REAL, 0)
-        signal.signal(signal.SIGALRM, previous)
+        signal.setitimer(signal.ITIMER_PROF, 0)
+        signal.signal(signal.SIGPROF, previous)
     assert peak <= memory_bound(size), f"a {size}-byte input peaked at {peak / 2**20:.1f} MiB"
+    assert seconds <= SLOW_SECONDS, f"a {size}-byte input took {seconds:.1f} s of CPU time"
     return result
 
 
@@ -237,6 +246,19 @@ def tomllib_loads(data: bytes) -> dict:
     import tomllib
 
     return tomllib.loads(data.decode())
+
+
+def test_the_bounds_stop_a_hang_and_fail_a_slow_parse_but_not_a_wait(monkeypatch):
+    """The guards of every fuzz example can fail: a parse that spins is stopped, one that computes
+    too long fails, and one that only waits (a busy machine) passes."""
+    monkeypatch.setattr(sys.modules[__name__], "HANG_SECONDS", 0.2)
+    with pytest.raises(Hang, match="CPU time"):
+        bounded(lambda: [i for i in range(10**12)], 10)
+    monkeypatch.setattr(sys.modules[__name__], "HANG_SECONDS", 20.0)
+    monkeypatch.setattr(sys.modules[__name__], "SLOW_SECONDS", 0.05)
+    with pytest.raises(AssertionError, match="s of CPU time"):
+        bounded(lambda: sum(range(10**7)), 10)
+    assert bounded(lambda: time.sleep(0.3) or "waited", 10) == "waited"
 
 
 # ------------------------------------------------------------------------------- OBJ + MTL
