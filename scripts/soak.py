@@ -61,6 +61,9 @@ def soak_one(name: str, examples: int, memory_bytes: int | None = None) -> dict:
     the kernel with the machine's memory (and the record's output) gone.
     """
     load_before = os.getloadavg()[0]
+    # the code soaked is the code at the start: commits made while it runs are not in the record's commit
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPOSITORY, capture_output=True,
+                            text=True).stdout.strip()
     started = time.perf_counter()
     completed = subprocess.run(
         [sys.executable, "-m", "pytest", f"{TESTS}::{name}", "-m", "slow or not slow", "-p", "no:cacheprovider",
@@ -78,8 +81,7 @@ def soak_one(name: str, examples: int, memory_bytes: int | None = None) -> dict:
         "invalid": int(counts.group(3)) if counts else None,
         "generate_seconds": float(generate.group(1)) if generate else None, "wall_seconds": round(seconds, 1),
         "load_before": load_before, "load_after": os.getloadavg()[0],
-        "commit": subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPOSITORY, capture_output=True,
-                                 text=True).stdout.strip(),
+        "commit": commit,
         "failure": failure_message(output), "pytest_tail": output.strip().splitlines()[-15:], **stamp({}),
     }
 
