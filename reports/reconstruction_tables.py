@@ -264,8 +264,11 @@ def _measure(config: Config, profile_name: str, fresh: bool, progress: bool,
     started = time.time() - 1.0  # file times have coarse resolution on some systems
     stages: list[Stage] = []
     variants = {variant: list(getattr(profile, variant.scenes_field)) for variant in DENOISER_VARIANTS}
-    steps = (len(scenes) + bool(unseen) + bool(far) + len(scenes) + sum(map(len, variants.values())) + 2
-             + 2 * len(scenes) + 1 + sum(recon.test_reference_spp(name) > recon.reference_spp for name in scenes))
+    # datasets; per-scene, mixed, variant and superresolution models; refined references; quality
+    # per scene and per unseen scene; photos; a frame and its timing per scene
+    steps = (len(scenes) + bool(unseen) + bool(far) + len(scenes) + 1 + sum(map(len, variants.values())) + 1
+             + sum(recon.test_reference_spp(name) > recon.reference_spp for name in scenes)
+             + len(scenes) + bool(unseen) + bool(far) + 1 + 2 * len(scenes))
     bar = tqdm(total=steps, unit="step", desc=f"reconstruction ({profile_name})", disable=not progress)
 
     def step(label: str) -> None:
