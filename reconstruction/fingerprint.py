@@ -25,8 +25,8 @@ def networks_fingerprint(profile: ReconstructionProfile | None = None) -> str:
 
     digest = hashlib.sha256(source_fingerprint(models, loss, data, hdr, inference, blend, _blend_kernels,
                                                train).encode())
-    if profile is not None and profile.model_store:
-        store = train.MODEL_STORE_ROOT / profile.model_store
+    store = None if profile is None else train.model_store_root(profile)
+    if store is not None:
         for weights in sorted(store.glob("*/best.pt")):
             digest.update(weights.parent.name.encode() + b"\0" + hashlib.sha256(weights.read_bytes()).digest())
     return digest.hexdigest()

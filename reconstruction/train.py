@@ -452,15 +452,19 @@ def _training_dir(kind: str, model: nn.Module, loss_fn: nn.Module, data_hash: st
     return cache_root() / "models" / f"{kind}-{key[:24]}"
 
 
-def _store_dir(directory: Path, profile: ReconstructionProfile) -> Path | None:
-    """Where the profile's ``model_store`` keeps the model trained in ``directory`` (None: no store).
+def model_store_root(profile: ReconstructionProfile) -> Path | None:
+    """The folder of the profile's ``model_store`` (None: no store).
 
     A relative ``model_store`` is relative to the repository (so that the committed networks are
     found whatever the working directory).
     """
-    if not profile.model_store:
-        return None
-    return MODEL_STORE_ROOT / profile.model_store / Path(directory).name
+    return MODEL_STORE_ROOT / profile.model_store if profile.model_store else None
+
+
+def _store_dir(directory: Path, profile: ReconstructionProfile) -> Path | None:
+    """Where the profile's ``model_store`` keeps the model trained in ``directory`` (None: no store)."""
+    root = model_store_root(profile)
+    return None if root is None else root / Path(directory).name
 
 
 def _published_result(model: nn.Module, directory: Path, profile: ReconstructionProfile,

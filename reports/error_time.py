@@ -542,10 +542,11 @@ def scene_rows(kind: str, version: int, measure_scene: Callable[..., dict], conf
     models: list[Reconstruction] = []
     rows = []
     bar = tqdm(names, unit="scene", desc=f"{kind} ({profile_name})", disable=not progress)
+    renderer = renderer_fingerprint()
+    weights = networks_fingerprint(recon) if networks else None
 
     def row_key(name: str) -> str:
-        return content_key(f"{kind}-row", version, renderer_fingerprint(), name, TIMING_REPEATS, settings,
-                           networks_fingerprint(recon) if networks else None)
+        return content_key(f"{kind}-row", version, renderer, name, TIMING_REPEATS, settings, weights)
 
     for name in bar:
         path = out_dir / "rows" / kind / f"{name}.json"
@@ -560,11 +561,12 @@ def scene_rows(kind: str, version: int, measure_scene: Callable[..., dict], conf
             bar.set_postfix_str("reconstruction networks" if networks else "")
             models.append(Reconstruction.load(names, recon, names, progress, blend_spp=blend_spp,
                                               demodulated_scenes=demodulated_scenes) if networks else None)
+            # loading may have trained the networks into the store, which changes their weights' digest
+            weights = networks_fingerprint(recon) if networks else None
         load_before = os.getloadavg()[0]
         with freed_memory_retained():  # a scene's renders and reconstructions, timed, reuse freed memory
             row = measure_scene(name, config, profile_name, models[0], bar)
         row["load_average"] = [load_before, os.getloadavg()[0]]
-        # keyed again: loading the networks may have trained them into the store, which changes their weights' digest
         record = {"key": row_key(name), "measured_at": time.strftime("%Y-%m-%d %H:%M:%S"), "row": row}
         atomic_write_bytes(path, json.dumps(record, indent=1).encode())
         rows.append(row)
