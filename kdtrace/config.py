@@ -208,6 +208,13 @@ class ProfileConfig:
         (the paper's network trained in a display-like transfer, ``Denoiser(perceptual=G)`` with
         G the reconstruction profile's ``denoiser_perceptual_gain``; Table 2). Empty for none;
         one more training each.
+    perceptual_mixed : bool
+        Also train the mixed model in that transfer and measure it beside the paper's mixed model
+        (Table 3, the unseen scenes included); one more mixed training.
+    superres_display : bool
+        Also train the superresolution net on display-encoded images
+        (``Superresolution(space="display")``) and measure it beside the paper's linear one
+        against bicubic upsampling of the same displayed images (Table 5); one more training.
     sweep_spp : tuple of int
         Samples per pixel of the run-time-against-error sweep (our path tracer and Mitsuba).
     sweep_width, sweep_height : int
@@ -236,6 +243,8 @@ class ProfileConfig:
     variant_scenes: tuple[str, ...] = ()
     demodulated_scenes: tuple[str, ...] = ()
     perceptual_scenes: tuple[str, ...] = ()
+    perceptual_mixed: bool = False
+    superres_display: bool = False
     sweep_spp: tuple[int, ...] = (1, 2, 4, 8, 16, 32)
     sweep_width: int = 128
     sweep_height: int = 128

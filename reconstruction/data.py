@@ -713,6 +713,43 @@ def degrade(target: np.ndarray, method: str = "area") -> np.ndarray:
     return bicubic_upsample(small, 2).clamp(0.0, 1.0).numpy()
 
 
+def degrade_displayed(target: np.ndarray, exposures: Any, method: str = "area") -> tuple[np.ndarray, np.ndarray]:
+    """Display-referred superresolution pairs of linear crops: the net's input and its target, both displayed.
+
+    Each crop is reduced 2x in linear radiance (what a render at half the resolution sees), the
+    half-size crop and the crop are both shown with their image's exposure
+    (:func:`reconstruction.metrics.to_display`: the tonemapping of the display-referred metrics),
+    and the shown half-size crop is upsampled as :func:`degrade` upsamples.
+
+    Parameters
+    ----------
+    target : ndarray, float32, shape (N, C, H, W)
+        Linear radiance in [0, 1]; H and W even.
+    exposures : sequence of float, length N
+        Each crop's display exposure (its whole image's).
+    method : {"area", "bicubic"}
+
+    Returns
+    -------
+    inputs, targets : ndarray, float32, shape (N, C, H, W)
+        In [0, 1], display-encoded.
+    """
+    import torch
+
+    from reconstruction.metrics import to_display
+    from reconstruction.models import bicubic_upsample
+
+    if target.ndim != 4 or target.shape[2] % 2 or target.shape[3] % 2:
+        raise ValueError(f"target must be (N, C, H, W) with even H and W, got {target.shape}")
+    if len(exposures) != len(target):
+        raise ValueError(f"{len(exposures)} exposures for {len(target)} crops")
+    small = halve(torch.from_numpy(np.ascontiguousarray(target, np.float32)), method).numpy()
+    shown_small = np.stack([to_display(crop, exposure) for crop, exposure in zip(small, exposures, strict=True)])
+    shown = np.stack([to_display(crop, exposure) for crop, exposure in zip(target, exposures, strict=True)])
+    inputs = bicubic_upsample(torch.from_numpy(shown_small.astype(np.float32)), 2).clamp(0.0, 1.0).numpy()
+    return inputs, shown.astype(np.float32)
+
+
 def halve(tensor: Any, method: str = "area") -> Any:
     """2x downsampling of a float ``torch.Tensor`` (N, C, H, W), H and W even.
 
@@ -756,7 +793,8 @@ def augment(crop: np.ndarray, rng: np.random.Generator) -> np.ndarray:
 
 
 def superres_data(profile: str | ReconstructionProfile = "quick",
-                  datasets: list[Dataset] | tuple[Dataset, ...] = ()) -> dict[str, dict[str, np.ndarray]]:
+                  datasets: list[Dataset] | tuple[Dataset, ...] = (),
+                  space: str = "linear") -> dict[str, dict[str, np.ndarray]]:
     """Superresolution pairs: photo and render crops, per split.
 
     Parameters
@@ -767,38 +805,58 @@ def superres_data(profile: str | ReconstructionProfile = "quick",
     datasets : sequence of Dataset
         Precision Graphics datasets whose references add render crops (train views to
         train, validation views to validation, test views to test).
+    space : {"linear", "display"}
+        ``"linear"``: radiance clipped to [0, 1]; ``"display"``: each crop shown with its
+        image's exposure (:func:`reconstruction.metrics.display_exposures` of the clipped photos
+        and views of its split; :func:`degrade_displayed`).
 
     Returns
     -------
     dict
         Split -> {"input": bicubic-upsampled RGB, "target": RGB}, float32 (N, 3, S, S),
-        linear; ``test`` holds renders only and is absent without ``datasets``.
+        in ``space``; ``test`` holds renders only and is absent without ``datasets``.
 
     Raises
     ------
     ValueError
         A crop does not fit an image.
     """
+    from reconstruction.metrics import display_exposures
+    from reconstruction.models import SUPERRES_SPACES
+
+    if space not in SUPERRES_SPACES:
+        raise ValueError(f"unknown superresolution space {space!r}; use one of {', '.join(SUPERRES_SPACES)}")
     profile = resolve_profile(profile)
     size, count = profile.superres_crop_size, profile.superres_crops_per_image
     rng = np.random.default_rng([profile.seed, 5])
     augment_rng = np.random.default_rng([profile.seed, 6])
-    targets: dict[str, list[np.ndarray]] = {split: [] for split in SPLITS}
+    # per split: each source image (clipped, linear) and its crops
+    sources: dict[str, list[tuple[np.ndarray, list[np.ndarray]]]] = {split: [] for split in SPLITS}
     for split, names in (("train", TRAIN_PHOTOS), ("validation", VALIDATION_PHOTOS)):
         for name in names:
-            image_crops = _image_crops(photo(name), size, count, rng)
+            image = photo(name)
+            image_crops = _image_crops(image, size, count, rng)
             if split == "train" and profile.superres_augment:
                 # a stream of its own, so that every other crop is the same with and without augmentation
-                extra = _image_crops(photo(name), size, count * (AUGMENT_FACTOR - 1), augment_rng)
+                extra = _image_crops(image, size, count * (AUGMENT_FACTOR - 1), augment_rng)
                 image_crops = [augment(c, augment_rng) for c in image_crops + extra]
-            targets[split] += image_crops
+            sources[split].append((image, image_crops))
     for dataset in datasets:
         for split in SPLITS:
             for name in dataset.views(split):
-                targets[split] += _image_crops(dataset.load_view(name)["reference"], size, count, rng)
+                reference = dataset.load_view(name)["reference"]
+                sources[split].append((reference, _image_crops(reference, size, count, rng)))
     out = {}
-    for split, crops_ in targets.items():
-        if crops_:
-            target = np.clip(np.stack(crops_), 0.0, 1.0).astype(np.float32)
+    for split, images in sources.items():
+        if not any(crops_ for _, crops_ in images):
+            continue
+        target = np.clip(np.stack([c for _, crops_ in images for c in crops_]), 0.0, 1.0).astype(np.float32)
+        if space == "linear":
             out[split] = {"input": degrade(target, profile.superres_downsample), "target": target}
+            continue
+        # an augmented crop keeps its photo's exposure: its own brightness change is the augmentation
+        shown_with = display_exposures([np.clip(image, 0.0, 1.0) for image, _ in images])[1]
+        exposures = [e for e, (_, crops_) in zip(shown_with, images, strict=True) for _ in crops_]
+        inputs, shown = degrade_displayed(target, exposures, profile.superres_downsample)
+        out[split] = {"input": inputs, "target": shown}
     return out

@@ -73,7 +73,7 @@ def pooled(predictions: Sequence[np.ndarray], references: Sequence[np.ndarray]) 
     squared, count, per_image = 0.0, 0, []
     relative = {"relmse": 0.0, "smape": 0.0}
     display = {"squared": 0.0, "flip": 0.0} if all(np.ndim(r) == 3 and np.shape(r)[2] == 3 for r in references) else None
-    own, exposures = _exposures(references) if display is not None else ([], [])
+    own, exposures = metrics.display_exposures(references) if display is not None else ([], [])
     for index, (prediction, reference) in enumerate(zip(predictions, references, strict=True)):
         prediction, reference = np.asarray(prediction, np.float64), np.asarray(reference, np.float64)
         if prediction.shape != reference.shape:
@@ -99,29 +99,6 @@ def pooled(predictions: Sequence[np.ndarray], references: Sequence[np.ndarray]) 
         result.update(_display_pooled(display["squared"] / count, display["flip"] / count))
         result["black_references"] = sum(exposure is None for exposure in own)
     return result
-
-
-def _exposures(references: Sequence[np.ndarray]) -> tuple[list[float | None], list[float]]:
-    """Each view's own display exposure (:func:`reconstruction.metrics.auto_exposure`; None for an
-    all-black reference) and the exposure it is shown with.
-
-    A view whose reference is entirely black has none of its own (a dataset may hold views that
-    no light reaches): it is shown with the median exposure of the others, so that its errors
-    still count. ValueError when no view has one.
-    """
-    from reconstruction import metrics
-
-    own = []
-    for reference in references:
-        try:
-            own.append(metrics.auto_exposure(reference))
-        except ValueError:
-            own.append(None)
-    defined = [exposure for exposure in own if exposure is not None]
-    if not defined:
-        raise ValueError(f"no display exposure: all {len(own)} references are black (or not finite)")
-    median = float(np.median(defined))
-    return own, [median if exposure is None else exposure for exposure in own]
 
 
 def _display_pooled(mean_squared: float, flip: float) -> dict[str, float]:
@@ -258,6 +235,11 @@ def superres_images(model: nn.Module, targets: Sequence[np.ndarray], downsample:
     (:func:`reconstruction.baselines.bicubic`, the net's own input), Lanczos-3
     (:func:`reconstruction.baselines.lanczos`) and ours
     (:func:`reconstruction.models.superresolve`: the net refines Y, Cb and Cr stay bicubic).
+    A net of the display space (``model.space == "display"``) and its two baselines upsample the
+    half-size image as it is shown (:func:`reconstruction.metrics.to_display` with the target's
+    display exposure, :func:`reconstruction.metrics.display_exposures`); their outputs are
+    measured as the linear images that display as they do (``srgb_decode(shown) / exposure``),
+    so both spaces' metrics apply to them.
 
     Parameters
     ----------
@@ -273,22 +255,31 @@ def superres_images(model: nn.Module, targets: Sequence[np.ndarray], downsample:
     dict
         ``"bicubic"``, ``"lanczos"`` (if asked) and ``"ours"`` -> :func:`pooled` metrics.
     """
+    from kdtrace.imageio import srgb_decode
+    from reconstruction import metrics
     from reconstruction.baselines import bicubic, lanczos
     from reconstruction.models import superresolve
 
     methods = {"bicubic": bicubic, **({"lanczos": lanczos} if with_lanczos else {}),
                "ours": lambda low: superresolve(model, low)}
-    outputs: dict[str, list[np.ndarray]] = {name: [] for name in methods}
-    references = []
-    was_training = model.training
-    model.eval()
+    references, lows = [], []
     for target in targets:
         target = np.clip(np.asarray(target, np.float32), 0.0, 1.0)
         target = target[: target.shape[0] // 2 * 2, : target.shape[1] // 2 * 2]
-        low = np.clip(downsample_2x(target, downsample), 0.0, 1.0)
         references.append(target)
+        lows.append(np.clip(downsample_2x(target, downsample), 0.0, 1.0))
+    displayed = getattr(model, "space", "linear") == "display"
+    exposures = metrics.display_exposures(references)[1] if displayed else [1.0] * len(references)
+    outputs: dict[str, list[np.ndarray]] = {name: [] for name in methods}
+    was_training = model.training
+    model.eval()
+    for low, exposure in zip(lows, exposures, strict=True):
         for name, upsample in methods.items():
-            outputs[name].append(upsample(low))
+            if displayed:
+                shown = upsample(metrics.to_display(low, exposure).astype(np.float32))
+                outputs[name].append(srgb_decode(np.clip(shown, 0.0, 1.0)) / np.float32(exposure))
+            else:
+                outputs[name].append(upsample(low))
     model.train(was_training)
     return {name: pooled(images, references) for name, images in outputs.items()}
 

@@ -128,6 +128,37 @@ def auto_exposure(reference, name: str = "reference", percentile: float = EXPOSU
     return 1.0 / level
 
 
+def display_exposures(references) -> tuple[list[float | None], list[float]]:
+    """Each view's own display exposure (:func:`auto_exposure`; None for an all-black reference)
+    and the exposure it is shown with.
+
+    A view whose reference is entirely black has none of its own (a dataset may hold views that
+    no light reaches): it is shown with the median exposure of the others, so that its errors
+    still count.
+
+    Parameters
+    ----------
+    references : sequence of array_like, (H, W, 3)
+        Linear radiance of each view's reference.
+
+    Raises
+    ------
+    ValueError
+        No view has an exposure (all references black or not finite).
+    """
+    own = []
+    for reference in references:
+        try:
+            own.append(auto_exposure(reference))
+        except ValueError:
+            own.append(None)
+    defined = [exposure for exposure in own if exposure is not None]
+    if not defined:
+        raise ValueError(f"no display exposure: all {len(own)} references are black (or not finite)")
+    median = float(np.median(defined))
+    return own, [median if exposure is None else exposure for exposure in own]
+
+
 def to_display(image, exposure: float) -> np.ndarray:
     """The displayed image: ``srgb(clip(image · exposure, 0, 1))`` of a linear (H, W, 3) image, float64 in [0, 1]."""
     if not (math.isfinite(exposure) and exposure > 0):

@@ -312,11 +312,23 @@ class Denoiser(nn.Module):
         return output
 
 
+#: Image spaces a :class:`Superresolution` net can be trained in.
+SUPERRES_SPACES = ("linear", "display")
+
+
 class Superresolution(nn.Module):
     """Y-channel superresolution CNN of §5.1 (9-3-5-3 kernels, 32 filters, 37,793 parameters).
 
     The input is the Y channel of the bicubic 2×-upsampled image; the output is that Y
     plus the predicted correction (same size as the input).
+
+    Parameters
+    ----------
+    space : {"linear", "display"}
+        The image space the net was trained in, which its caller must feed it: ``"linear"``
+        (the paper's: radiance clipped to [0, 1]) or ``"display"`` (the documented variant: each
+        image exposed and sRGB-encoded, :func:`reconstruction.metrics.to_display`, before the
+        bicubic upsampling). The layers are the same; the space is part of the model's identity.
     """
 
     #: bf16 inference converts this net's weights once instead of autocasting every call
@@ -324,8 +336,11 @@ class Superresolution(nn.Module):
     #: dtype and adds the correction to its input in the input's own precision, as autocast does.
     casts_to_weight_dtype = True
 
-    def __init__(self) -> None:
+    def __init__(self, space: str = "linear") -> None:
         super().__init__()
+        if space not in SUPERRES_SPACES:
+            raise ValueError(f"unknown superresolution space {space!r}; use one of {', '.join(SUPERRES_SPACES)}")
+        self.space = space
         self.layers = nn.ModuleList(
             nn.Conv2d(c_in, c_out, k, padding=k // 2, padding_mode="replicate")
             for c_in, c_out, k in ((1, FILTERS, 9), (FILTERS, FILTERS, 3), (FILTERS, FILTERS, 5), (FILTERS, 1, 3))
@@ -339,7 +354,8 @@ class Superresolution(nn.Module):
     @property
     def config(self) -> dict:
         """Constructor arguments and identity, for checkpoints."""
-        return {"architecture": "Superresolution", "kwargs": {}}
+        # the linear net keeps the empty kwargs of before, so that its stored weights keep their key
+        return {"architecture": "Superresolution", "kwargs": {} if self.space == "linear" else {"space": self.space}}
 
     def forward(self, y: torch.Tensor) -> torch.Tensor:
         """Refine a bicubic-upsampled luma batch.

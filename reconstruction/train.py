@@ -708,7 +708,7 @@ def superres_tensors(pairs: dict[str, np.ndarray]) -> tuple[torch.Tensor, torch.
 
 def train_superres(profile: str | ReconstructionProfile = "quick", scene_names: list[str] | tuple[str, ...] = (),
                    model: nn.Module | None = None, loss_fn: nn.Module | None = None, directory: Path | None = None,
-                   psnr: Callable | None = None, progress: bool | None = None) -> TrainResult:
+                   psnr: Callable | None = None, progress: bool | None = None, space: str = "linear") -> TrainResult:
     """Train the Y-channel superresolution network on photo crops plus renders of ``scene_names``.
 
     Parameters
@@ -722,6 +722,9 @@ def train_superres(profile: str | ReconstructionProfile = "quick", scene_names: 
         Default :class:`reconstruction.loss.EdgeAwareLoss` with sigma 1.
     directory, psnr, progress
         As for :func:`train_denoiser`.
+    space : {"linear", "display"}
+        The image space of the crops (:func:`reconstruction.data.superres_data`) and of the default
+        model (:class:`reconstruction.models.Superresolution`); a given ``model``'s own ``space`` wins.
 
     Returns
     -------
@@ -733,15 +736,17 @@ def train_superres(profile: str | ReconstructionProfile = "quick", scene_names: 
     from reconstruction.data import AUGMENT_EXPOSURE, AUGMENT_FACTOR, generate_dataset, superres_data
 
     profile = resolve_profile(profile)
-    keys = list(_dataset_keys(scene_names, profile).values()) if scene_names else []
-    data_hash = content_key("superres-data", keys, profile.superres_crop_size,
-                            profile.superres_crops_per_image, profile.superres_downsample, profile.seed,
-                            *(["augmented", AUGMENT_FACTOR, AUGMENT_EXPOSURE] if profile.superres_augment else []))
     if model is None:
         from reconstruction.models import Superresolution
 
         torch.manual_seed(profile.seed)
-        model = Superresolution()
+        model = Superresolution(space)
+    space = getattr(model, "space", space)
+    keys = list(_dataset_keys(scene_names, profile).values()) if scene_names else []
+    data_hash = content_key("superres-data", keys, profile.superres_crop_size,
+                            profile.superres_crops_per_image, profile.superres_downsample, profile.seed,
+                            *(["augmented", AUGMENT_FACTOR, AUGMENT_EXPOSURE] if profile.superres_augment else []),
+                            *(["space", space] if space != "linear" else []))
     if loss_fn is None:
         from reconstruction.loss import SUPERRESOLUTION_SIGMA, EdgeAwareLoss
 
@@ -753,7 +758,7 @@ def train_superres(profile: str | ReconstructionProfile = "quick", scene_names: 
         if published is not None:
             return published
         datasets = [generate_dataset(name, profile, progress) for name in scene_names]
-        data = {split: superres_tensors(value) for split, value in superres_data(profile, datasets).items()}
+        data = {split: superres_tensors(value) for split, value in superres_data(profile, datasets, space).items()}
         precision = resolve_precision(profile.precision)[0]
         result = fit(model, loss_fn, data, directory, data_hash, profile.epochs, profile.batch_size,
                      profile.learning_rate, profile.seed, _identity, psnr, progress, precision, profile.patience)

@@ -27,6 +27,9 @@ scene's default camera, the error of five methods against a Mitsuba reference of
     either renderer (with albedo) + the scene's albedo-demodulated denoiser, the documented
     variant of the paper's network (``Denoiser(demodulate=True)``, same parameters), on the
     scenes of the profile's ``demodulated_scenes``;
+``kdtrace+perceptual``, ``mitsuba+perceptual``
+    the same with the scene's perceptual denoiser (``Denoiser(perceptual=G)``, trained in a
+    display-like transfer), on the scenes of the profile's ``perceptual_scenes``;
 ``mitsuba+denoiser``, ``mitsuba+oidn``
     Mitsuba's ``path`` integrator wrapped in its ``aov`` integrator (RGB plus albedo and
     shading normal in one render, timed as a whole) + our per-scene denoiser / OIDN: the
@@ -71,7 +74,7 @@ import math
 import os
 import time
 import warnings
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -91,7 +94,19 @@ from reports.metrics import Metric, write_metrics
 from reports.notes import ReportNote
 
 #: Bump when what a row measures changes: cached rows become stale.
-ROW_VERSION = 5
+ROW_VERSION = 6
+
+#: The documented denoiser variants the sweep measures beside the paper's network: key -> the
+#: :func:`reconstruction.train.train_denoiser` options of that variant for a reconstruction profile.
+DENOISER_VARIANTS: dict[str, Callable[[ReconstructionProfile], dict[str, Any]]] = {
+    "demodulated": lambda profile: {"demodulate": True},
+    "perceptual": lambda profile: {"perceptual": profile.denoiser_perceptual_gain},
+}
+
+
+def sweep_variants(profile: ProfileConfig) -> dict[str, tuple[str, ...]]:
+    """The report profile's scenes of each of :data:`DENOISER_VARIANTS` (``demodulated_scenes``, ``perceptual_scenes``)."""
+    return {key: tuple(getattr(profile, f"{key}_scenes")) for key in DENOISER_VARIANTS}
 #: Bump when what a plug-in denoiser's row measures changes.
 PLUGIN_ROW_VERSION = 1
 
@@ -108,20 +123,21 @@ class Reconstruction:
     denoisers: dict[str, Any]
     superres: Any
     blends: dict[str, Any] = dataclasses.field(default_factory=dict)
-    demodulated: dict[str, Any] = dataclasses.field(default_factory=dict)
+    #: A documented variant of the denoiser (a key of :data:`DENOISER_VARIANTS`) -> scene -> its model.
+    variants: dict[str, dict[str, Any]] = dataclasses.field(default_factory=dict)
 
     @classmethod
     def load(cls, scene_names: Sequence[str], profile: ReconstructionProfile, all_scenes: Sequence[str],
              progress: bool = True, blend_spp: Sequence[int] = (),
-             demodulated_scenes: Sequence[str] = ()) -> Reconstruction:
+             variant_scenes: Mapping[str, Sequence[str]] | None = None) -> Reconstruction:
         """Train (or reuse from the cache) the denoiser of each of ``scene_names`` and the SR net.
 
         The superresolution net is trained on the photographs plus the renders of
         ``all_scenes`` (the profile's reconstruction scenes), as for Table 5. With
         ``blend_spp``, each denoiser's blend weights at those spp are fitted (or reused) on
-        its scene's validation views (:func:`reconstruction.blend.fit_blend_weights`). The
-        scenes of ``demodulated_scenes`` also get their albedo-demodulated denoiser (Table 2's
-        variant, the same cached models).
+        its scene's validation views (:func:`reconstruction.blend.fit_blend_weights`).
+        ``variant_scenes`` maps a key of :data:`DENOISER_VARIANTS` to the scenes that also get
+        that variant of their denoiser (Table 2's variants, the same cached models).
         """
         from kdtrace.scenes import load_scene
         from reconstruction.blend import fit_blend_weights
@@ -136,9 +152,10 @@ class Reconstruction:
                 blends[name] = fit_blend_weights(model, generate_dataset(name, profile, progress=False),
                                                  load_scene(name), blend_spp, profile.max_depth, profile.seed,
                                                  progress=progress)
-        demodulated = {name: train_denoiser([name], profile, progress=progress, demodulate=True).model
-                       for name in demodulated_scenes}
-        return cls(denoisers, superres, blends, demodulated)
+        variants = {key: {name: train_denoiser([name], profile, progress=progress,
+                                               **DENOISER_VARIANTS[key](profile)).model for name in names}
+                    for key, names in (variant_scenes or {}).items() if names}
+        return cls(denoisers, superres, blends, variants)
 
 
 def denoise_frame(model, frame) -> np.ndarray:
@@ -364,11 +381,13 @@ def measure_scene(name: str, config: Config, profile_name: str, models: Reconstr
             image, steps = timed_reconstruction([lambda f: oidn(f.rgb, f.albedo, f.normal)], mitsuba_frame)
             points.append(_point("mitsuba+oidn", spp, width, height, mitsuba_seconds, steps, image, reference.rgb,
                                  mitsuba_errors))
-            if name in models.demodulated:
+            for key, trained in models.variants.items():
+                if name not in trained:
+                    continue
                 for method, source, render_seconds, input_errors in (
-                        ("kdtrace+demodulated", frame, frame_seconds, frame_errors),
-                        ("mitsuba+demodulated", mitsuba_frame, mitsuba_seconds, mitsuba_errors)):
-                    image, steps = timed_reconstruction([lambda f: denoise_frame(models.demodulated[name], f)], source)
+                        (f"kdtrace+{key}", frame, frame_seconds, frame_errors),
+                        (f"mitsuba+{key}", mitsuba_frame, mitsuba_seconds, mitsuba_errors)):
+                    image, steps = timed_reconstruction([lambda f, model=trained[name]: denoise_frame(model, f)], source)
                     points.append(_point(method, spp, width, height, render_seconds, steps, image, reference.rgb,
                                          input_errors))
 
@@ -499,7 +518,7 @@ def with_plugins(rows: Sequence[dict], plugin_rows: Sequence[dict]) -> list[dict
 
 def scene_rows(kind: str, version: int, measure_scene: Callable[..., dict], config: Config, profile_name: str,
                out_dir: Path, fresh: bool, progress: bool, blend_spp: Sequence[int] = (),
-               demodulated_scenes: Sequence[str] = (), networks: bool = True) -> list[dict]:
+               variant_scenes: Mapping[str, Sequence[str]] | None = None, networks: bool = True) -> list[dict]:
     """Per-scene rows of a report over the profile's reconstruction scenes, reused when their key matches.
 
     A row is cached in ``out_dir/rows/KIND/SCENE.json`` under a content key of the scene,
@@ -522,8 +541,8 @@ def scene_rows(kind: str, version: int, measure_scene: Callable[..., dict], conf
         As for :func:`generate`.
     blend_spp : sequence of int
         Fit the denoisers' blend weights at these spp (:meth:`Reconstruction.load`); () skips it.
-    demodulated_scenes : sequence of str
-        Scenes whose albedo-demodulated denoiser is loaded too (:meth:`Reconstruction.load`).
+    variant_scenes : mapping, optional
+        Denoiser variant -> scenes whose variant is loaded too (:meth:`Reconstruction.load`).
     networks : bool
         Load the networks for ``measure_scene``; False passes None (a report that renders only).
 
@@ -560,7 +579,7 @@ def scene_rows(kind: str, version: int, measure_scene: Callable[..., dict], conf
         if not models:
             bar.set_postfix_str("reconstruction networks" if networks else "")
             models.append(Reconstruction.load(names, recon, names, progress, blend_spp=blend_spp,
-                                              demodulated_scenes=demodulated_scenes) if networks else None)
+                                              variant_scenes=variant_scenes) if networks else None)
             # loading may have trained the networks into the store, which changes their weights' digest
             weights = networks_fingerprint(recon) if networks else None
         load_before = os.getloadavg()[0]
@@ -608,7 +627,7 @@ def generate(config: Config, profile_name: str, out_dir: str | Path, fresh: bool
     out_dir = Path(out_dir)
     rows = scene_rows("error_time", ROW_VERSION, measure_scene, config, profile_name, out_dir, fresh, progress,
                       blend_spp=config.profile(profile_name).sweep_spp,
-                      demodulated_scenes=config.profile(profile_name).demodulated_scenes)
+                      variant_scenes=sweep_variants(config.profile(profile_name)))
     if denoisers:
         extra = plugin_scene_rows(list(denoisers), config, profile_name, out_dir, fresh, progress)
         for row in extra:
@@ -637,7 +656,8 @@ def scene_metrics(row: dict, profile: ProfileConfig, recon: ReconstructionProfil
                       f"paths/s of our path tracer over Mitsuba path ({row['mitsuba_variant']}), {row['width']}x"
                       f"{row['height']} {spp} spp, same run")]
     for method, metric, what in (("kdtrace+denoiser", "denoiser", "per-scene denoiser"),
-                                 ("kdtrace+demodulated", "demodulated_denoiser", "demodulated per-scene denoiser")):
+                                 *((f"kdtrace+{key}", f"{key}_denoiser", f"{key} per-scene denoiser")
+                                   for key in DENOISER_VARIANTS)):
         denoised = points[(points["method"] == method) & (points["spp"] == recon.spp)]
         if len(denoised):
             metrics.append(Metric(f"error_time/{name}/{metric}_psnr_{recon.spp}spp", "psnr", float(denoised["psnr"].iloc[0]),

@@ -33,10 +33,12 @@ METHODS = {
     "mitsuba+oidn": "Mitsuba + OIDN",
     "kdtrace+demodulated": "ours + demodulated denoiser",
     "mitsuba+demodulated": "Mitsuba + demodulated denoiser",
+    "kdtrace+perceptual": "ours + perceptual denoiser",
+    "mitsuba+perceptual": "Mitsuba + perceptual denoiser",
 }
 #: Our reconstruction pipelines, compared with brute force in the headline.
 PIPELINES = ("kdtrace+denoiser", "kdtrace+denoiser-blend", "kdtrace-half+denoiser+superres", "mitsuba+denoiser",
-             "kdtrace+demodulated", "mitsuba+demodulated")
+             "kdtrace+demodulated", "mitsuba+demodulated", "kdtrace+perceptual", "mitsuba+perceptual")
 #: Every denoising pipeline of the headline: ours and both renderers with OIDN.
 DENOISING = (*PIPELINES, "kdtrace+oidn", "mitsuba+oidn")
 #: The brute-force renderer each pipeline starts from (its own renderer's curve is the first comparison).

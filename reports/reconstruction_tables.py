@@ -267,6 +267,7 @@ def _measure(config: Config, profile_name: str, fresh: bool, progress: bool,
     # datasets; per-scene, mixed, variant and superresolution models; refined references; quality
     # per scene and per unseen scene; photos; a frame and its timing per scene
     steps = (len(scenes) + bool(unseen) + bool(far) + len(scenes) + 1 + sum(map(len, variants.values())) + 1
+             + profile.perceptual_mixed + profile.superres_display
              + sum(recon.test_reference_spp(name) > recon.reference_spp for name in scenes)
              + len(scenes) + bool(unseen) + bool(far) + 1 + 2 * len(scenes))
     bar = tqdm(total=steps, unit="step", desc=f"reconstruction ({profile_name})", disable=not progress)
@@ -296,7 +297,13 @@ def _measure(config: Config, profile_name: str, fresh: bool, progress: bool,
             perceptual=recon.denoiser_perceptual_gain if variant.perceptual else 0.0, progress=False,
             warmup_steps=getattr(recon, variant.warmup_field) if variant.warmup_field else 0)) for name in names}
         for variant, names in variants.items()}
+    mixed_perceptual = (stage("perceptual mixed denoiser", lambda: train_denoiser(
+        scenes, recon.mixed, perceptual=recon.denoiser_perceptual_gain, progress=False))
+        if profile.perceptual_mixed else None)
     superres = stage("superresolution", lambda: train_superres(recon, scenes, progress=False))
+    superres_display = (stage("display superresolution", lambda: train_superres(recon, scenes, progress=False,
+                                                                                space="display"))
+                        if profile.superres_display else None)
     for name in scenes:  # more reference samples for the test views of the scenes that need them, only
         refine = functools.partial(refine_test_references, datasets[name], load_scene(name), recon, progress=False)
         needed = recon.test_reference_spp(name) > recon.reference_spp
@@ -315,6 +322,12 @@ def _measure(config: Config, profile_name: str, fresh: bool, progress: bool,
             "superres": evaluate.superres_quality(superres.model, dataset, "test", recon.superres_downsample),
             "reference_noise": reference_noise(dataset, "test", recon.spp, dataset.reference_spp("test")),
         }
+        if mixed_perceptual is not None:
+            quality[name]["mixed_perceptual"] = {"test": evaluate.denoiser_quality(
+                mixed_perceptual.model, dataset, "test", with_oidn=False)["ours"]}
+        if superres_display is not None:
+            quality[name]["superres_display"] = evaluate.superres_quality(superres_display.model, dataset, "test",
+                                                                          recon.superres_downsample)
         for variant, trained in variant_models.items():
             if name in trained:
                 quality[name][variant.key] = {
@@ -327,15 +340,17 @@ def _measure(config: Config, profile_name: str, fresh: bool, progress: bool,
             step(f"unseen {name}")
             unseen_quality[role] = {"scene": name, "views": len(datasets[name].views()),
                                     **evaluate.denoiser_quality(mixed.model, datasets[name], None, with_oidn=True)}
+            if mixed_perceptual is not None:
+                unseen_quality[role]["mixed_perceptual"] = evaluate.denoiser_quality(
+                    mixed_perceptual.model, datasets[name], None, with_oidn=False)["ours"]
             bar.update()
     step("photos")
-    photos = {
-        "train": evaluate.superres_images(superres.model, [photo(n) for n in TRAIN_PHOTOS], recon.superres_downsample),
-        "validation": evaluate.superres_images(superres.model, [photo(n) for n in VALIDATION_PHOTOS],
-                                               recon.superres_downsample),
-        "test": evaluate.superres_images(superres.model, [evaluate.held_out_photo(n) for n in evaluate.TEST_PHOTOS],
-                                         recon.superres_downsample),
-    }
+    photo_sets = {"train": [photo(n) for n in TRAIN_PHOTOS], "validation": [photo(n) for n in VALIDATION_PHOTOS],
+                  "test": [evaluate.held_out_photo(n) for n in evaluate.TEST_PHOTOS]}
+    photos = {split: evaluate.superres_images(superres.model, images, recon.superres_downsample)
+              for split, images in photo_sets.items()}
+    photos_display = ({split: evaluate.superres_images(superres_display.model, images, recon.superres_downsample)
+                       for split, images in photo_sets.items()} if superres_display is not None else None)
     bar.update()
 
     timing, frames = {}, {}
@@ -366,6 +381,8 @@ def _measure(config: Config, profile_name: str, fresh: bool, progress: bool,
         "unseen": unseen, "frame": [profile.frame_width, profile.frame_height], "frame_spp": profile.frame_spp,
         "stages": [dataclasses.asdict(s) for s in stages],
         "best_epochs": {**{name: models[name].best_epoch for name in scenes}, "mixed": mixed.best_epoch,
+                        **({"mixed perceptual": mixed_perceptual.best_epoch} if mixed_perceptual is not None else {}),
+                        **({"superres display": superres_display.best_epoch} if superres_display is not None else {}),
                         **{f"{name} {variant.label}": result.best_epoch
                            for variant, trained in variant_models.items() for name, result in trained.items()},
                         "superres": superres.best_epoch},
@@ -376,8 +393,11 @@ def _measure(config: Config, profile_name: str, fresh: bool, progress: bool,
                           for variant, trained in variant_models.items() if trained}},
         **{variant.scenes_field: variants[variant] for variant in DENOISER_VARIANTS},
         "quality": quality, "unseen_quality": unseen_quality.get("unseen"), "photos": photos, "timing": timing,
+        "photos_display": photos_display,
         "far": far, "far_quality": unseen_quality.get("far"),
         "histories": {**{name: models[name].history for name in scenes}, "mixed": mixed.history,
+                      **({"mixed perceptual": mixed_perceptual.history} if mixed_perceptual is not None else {}),
+                      **({"superres display": superres_display.history} if superres_display is not None else {}),
                       **{f"{name} {variant.label}": result.history
                          for variant, trained in variant_models.items() for name, result in trained.items()},
                       "superres": superres.history},
@@ -531,7 +551,8 @@ def _table3(m: dict) -> list[dict]:
                      "noisy_psnr": q["ours"]["test"]["noisy"]["psnr"],
                      "oidn_psnr": q["ours"]["test"].get("oidn", {}).get("psnr"),
                      "paper_mixed_psnr": paper.get("test_psnr"), "paper_mixed_rmse": paper.get("test_rmse"),
-                     "paper_psnr_difference": paper.get("psnr_difference")})
+                     "paper_psnr_difference": paper.get("psnr_difference"),
+                     **_mixed_perceptual_columns(q.get("mixed_perceptual", {}).get("test"))})
     if m["unseen_quality"]:
         u, paper = m["unseen_quality"], TABLE3["unseen"]
         rows.append({"scene": f"{m['unseen']} (never seen)", "views": f"all ({u['views']})",
@@ -542,7 +563,7 @@ def _table3(m: dict) -> list[dict]:
                      "psnr_difference": None, "noisy_psnr": u["noisy"]["psnr"],
                      "oidn_psnr": u.get("oidn", {}).get("psnr"),
                      "paper_mixed_psnr": paper["test_psnr"], "paper_mixed_rmse": paper["test_rmse"],
-                     "paper_psnr_difference": None})
+                     "paper_psnr_difference": None, **_mixed_perceptual_columns(u.get("mixed_perceptual"))})
     if m.get("far_quality"):
         u = m["far_quality"]
         rows.append({"scene": f"{m['far']} (never seen, far)", "views": f"all ({u['views']})",
@@ -552,28 +573,48 @@ def _table3(m: dict) -> list[dict]:
                      "mixed_pixels_black_where_lit": u["ours"].get("black_where_lit"), "per_scene_psnr": None,
                      "psnr_difference": None, "noisy_psnr": u["noisy"]["psnr"],
                      "oidn_psnr": u.get("oidn", {}).get("psnr"), "paper_mixed_psnr": None, "paper_mixed_rmse": None,
-                     "paper_psnr_difference": None})
+                     "paper_psnr_difference": None, **_mixed_perceptual_columns(u.get("mixed_perceptual"))})
     return rows
 
 
-def _sr_row(label: str, split: str, results: dict, paper: dict | None = None) -> dict:
-    return {"data": label, "split": split, "images": results["ours"]["images"],
-            **{f"{method}_{key}": results[method].get(key) for method in ("bicubic", "lanczos", "ours")
-               for key in ("psnr", "rmse", "display_psnr", "flip")},
-            "gain_over_bicubic": results["ours"]["psnr"] - results["bicubic"]["psnr"],
-            "display_gain_over_bicubic": (None if results["ours"].get("display_psnr") is None
-                                          else results["ours"]["display_psnr"] - results["bicubic"]["display_psnr"]),
-            "paper_psnr": (paper or {}).get(f"{split}_psnr"), "paper_rmse": (paper or {}).get(f"{split}_rmse")}
+def _mixed_perceptual_columns(result: dict | None) -> dict:
+    """Table 3's columns of the perceptual mixed model on a row's views (empty: not trained)."""
+    if result is None:
+        return {}
+    return {"mixed_perceptual_display_psnr": result.get("display_psnr"), "mixed_perceptual_flip": result.get("flip"),
+            "mixed_perceptual_relmse": result.get("relmse"), "mixed_perceptual_psnr": result["psnr"],
+            "mixed_perceptual_pixels_beyond_input": result.get("beyond_input")}
+
+
+def _sr_row(label: str, split: str, results: dict, paper: dict | None = None, displayed: dict | None = None) -> dict:
+    """One Table 5 row: the linear net and its baselines, and (``displayed``) the display-space net and its own."""
+    row = {"data": label, "split": split, "images": results["ours"]["images"],
+           **{f"{method}_{key}": results[method].get(key) for method in ("bicubic", "lanczos", "ours")
+              for key in ("psnr", "rmse", "display_psnr", "flip")},
+           "gain_over_bicubic": results["ours"]["psnr"] - results["bicubic"]["psnr"],
+           "display_gain_over_bicubic": (None if results["ours"].get("display_psnr") is None
+                                         else results["ours"]["display_psnr"] - results["bicubic"]["display_psnr"]),
+           "paper_psnr": (paper or {}).get(f"{split}_psnr"), "paper_rmse": (paper or {}).get(f"{split}_rmse")}
+    if displayed is not None:
+        row.update({f"displayed_{method}_{key}": displayed[method].get(key) for method in ("bicubic", "ours")
+                    for key in ("psnr", "display_psnr", "flip")})
+        row["displayed_gain_over_bicubic"] = displayed["ours"]["display_psnr"] - displayed["bicubic"]["display_psnr"]
+    return row
 
 
 def _table5(m: dict) -> list[dict]:
     from reconstruction.evaluate import combine
 
-    rows = [_sr_row("photos", split, m["photos"][split], TABLE5["photos"]) for split in ("train", "validation", "test")]
-    rows += [_sr_row(name, "test", m["quality"][name]["superres"]) for name in m["scenes"]]
+    shown = m.get("photos_display")
+    rows = [_sr_row("photos", split, m["photos"][split], TABLE5["photos"], shown and shown[split])
+            for split in ("train", "validation", "test")]
+    rows += [_sr_row(name, "test", m["quality"][name]["superres"], None, m["quality"][name].get("superres_display"))
+             for name in m["scenes"]]
     pooled = {method: combine([m["quality"][n]["superres"][method] for n in m["scenes"]])
               for method in ("bicubic", "lanczos", "ours")}
-    rows.append(_sr_row("all scenes", "test", pooled))
+    pooled_shown = ({method: combine([m["quality"][n]["superres_display"][method] for n in m["scenes"]])
+                     for method in ("bicubic", "ours")} if shown else None)
+    rows.append(_sr_row("all scenes", "test", pooled, None, pooled_shown))
     return rows
 
 
@@ -685,7 +726,9 @@ _VIEWS: dict[str, list[View]] = {
         (_DISPLAY, [("scene", "scene"), ("views", "views"), ("paper_mixed_psnr", "paper mixed PSNR"),
                     ("noisy_display_psnr", "noisy"), ("display_psnr", "mixed"), ("per_scene_display_psnr", "per-scene"),
                     ("oidn_display_psnr", "OIDN"), (lambda r: _flips(r, "noisy_flip", "flip", "oidn_flip"),
-                                                    "FLIP noisy / mixed / OIDN")]),
+                                                    "FLIP noisy / mixed / OIDN"),
+                    ("mixed_perceptual_display_psnr", "mixed perceptual"),
+                    ("mixed_perceptual_flip", "FLIP mixed perceptual")]),
         (_LINEAR, [("scene", "scene"), ("noisy_psnr", "noisy"), ("mixed_psnr", "mixed"), ("per_scene_psnr", "per-scene"),
                    ("oidn_psnr", "OIDN"), ("relmse", "relMSE mixed"),
                    ("mixed_pixels_beyond_input", "pixels beyond input"),
@@ -694,7 +737,10 @@ _VIEWS: dict[str, list[View]] = {
     "table5": [
         (_DISPLAY, [("data", "data"), ("split", "split"), ("images", "images"), ("paper_psnr", "paper PSNR"),
                     ("bicubic_display_psnr", "bicubic"), ("lanczos_display_psnr", "Lanczos"), ("ours_display_psnr", "ours"),
-                    ("display_gain_over_bicubic", "ours − bicubic")]),
+                    ("display_gain_over_bicubic", "ours − bicubic"),
+                    ("displayed_bicubic_display_psnr", "bicubic of the displayed image"),
+                    ("displayed_ours_display_psnr", "ours, display-trained"),
+                    ("displayed_gain_over_bicubic", "display-trained − its bicubic")]),
         (_LINEAR, [("data", "data"), ("split", "split"), ("bicubic_psnr", "bicubic"), ("lanczos_psnr", "Lanczos"),
                    ("ours_psnr", "ours"), ("gain_over_bicubic", "ours − bicubic")]),
     ],
@@ -778,12 +824,18 @@ _TITLES = {
                "`reconstruction.evaluate.beyond_input`); `mixed_pixels_black_where_lit`: pixels it made exactly black "
                "where the noisy input has light (negative network outputs are clamped to 0, so a collapsed output shows "
                "as black patches; `reconstruction.evaluate.black_where_lit`). Both are failures of a different kind from "
-               "a low PSNR and are counted apart."),
+               "a low PSNR and are counted apart. `mixed perceptual` (profile `perceptual_mixed`): the mixed model "
+               "trained in the perceptual transfer of Table 2's `per-scene perceptual` variant, on the same crops."),
     "table5": ("Table 5 — superresolution 2x against bicubic and Lanczos",
                "Each target is reduced 2x ({downsample}) and upsampled back; PSNR/RMSE pooled, clipped to [0, 1], "
                "linear. Photos: whole images (train and validation photos were used in training / model choice; the "
                "test photos never). Scenes: reference renders of the test views. The paper's per-scene rows repeat "
-               "its Table 2 (a typesetting error) and are not shown."),
+               "its Table 2 (a typesetting error) and are not shown. `ours, display-trained` (profile "
+               "`superres_display`): the same network trained on display-encoded images "
+               "(`reconstruction.models.Superresolution(space=\"display\")`): the half-size image is reduced in linear "
+               "radiance, shown with the target's exposure and sRGB curve, and upsampled there; `bicubic of the "
+               "displayed image` is its own input, bicubic upsampling in that space. Its linear columns are of the "
+               "linear image that displays as its output does."),
     "table6": ("Table 6 — network evaluation seconds, ours against OIDN and bicubic in the same run",
                "Per scene: the default view at the report frame size, {spp} spp (our path tracer) with a Mitsuba "
                "reference; seconds are medians of 3 calls after a warm-up, torch threads as listed, OIDN on its own "
@@ -918,6 +970,12 @@ def metrics_of(m: dict) -> list[Metric]:
         out += _display_metrics(f"table2/{name}/mixed", q["mixed"]["test"], "mixed denoiser, this scene's test views")
         out += _display_metrics(f"table5/{name}/ours", q["superres"]["ours"], "superresolution 2x, test views",
                                 with_flip=False)
+        if "superres_display" in q:
+            out += _display_metrics(f"table5/{name}/display_trained", q["superres_display"]["ours"],
+                                    "display-trained superresolution 2x, test views", with_flip=False)
+        if "mixed_perceptual" in q:
+            out += _display_metrics(f"table3/{name}/mixed_perceptual", q["mixed_perceptual"]["test"],
+                                    "perceptual mixed denoiser, this scene's test views")
         for variant in (v for v in DENOISER_VARIANTS if v.key in q):
             out.append(Metric(f"table2/{name}/{variant.key}_test_psnr", "psnr", q[variant.key]["test"]["psnr"],
                               f"per-scene {variant.label} variant, test views, dB"))
@@ -931,6 +989,9 @@ def metrics_of(m: dict) -> list[Metric]:
                           "mixed denoiser on the never-seen scene, all views, dB"))
         out += _display_metrics(f"table3/{m['unseen']}/mixed", m["unseen_quality"]["ours"],
                                 "mixed denoiser on the never-seen scene, all views")
+        if "mixed_perceptual" in m["unseen_quality"]:
+            out += _display_metrics(f"table3/{m['unseen']}/mixed_perceptual", m["unseen_quality"]["mixed_perceptual"],
+                                    "perceptual mixed denoiser on the never-seen scene, all views")
     if m.get("far_quality"):
         out.append(Metric(f"table3/{m['far']}/mixed_psnr", "psnr", m["far_quality"]["ours"]["psnr"],
                           "mixed denoiser on the far never-seen scene, all views, dB"))
@@ -938,6 +999,9 @@ def metrics_of(m: dict) -> list[Metric]:
                       "superresolution 2x, held-out photos, dB"))
     out += _display_metrics("table5/photos/ours", m["photos"]["test"]["ours"], "superresolution 2x, held-out photos",
                             with_flip=False)
+    if m.get("photos_display"):
+        out += _display_metrics("table5/photos/display_trained", m["photos_display"]["test"]["ours"],
+                                "display-trained superresolution 2x, held-out photos", with_flip=False)
     return out + plugin_metrics(m)
 
 

@@ -255,3 +255,29 @@ def test_a_dataset_too_large_for_the_disk_is_refused_before_rendering(tmp_path, 
     from kdtrace.scenes import load_scene
 
     assert not list(data.dataset_dir(load_scene(SCENE), big).glob("view-*"))  # nothing was rendered
+
+
+def test_display_superres_pairs_are_the_displayed_crops_and_their_displayed_half_size_images(dataset):
+    from reconstruction.metrics import display_exposures, to_display
+
+    dataset, _ = dataset
+    linear, shown = data.superres_data(QUICK, [dataset]), data.superres_data(QUICK, [dataset], "display")
+    test_views = [np.clip(dataset.load_view(name)["reference"], 0, 1) for name in dataset.views("test")]
+    exposures = display_exposures(test_views)[1]
+    count = QUICK.superres_crops_per_image
+    for index, exposure in enumerate(exposures):  # the test split is renders only, each view's crops in turn
+        crops = slice(index * count, (index + 1) * count)
+        target = linear["test"]["target"][crops]
+        np.testing.assert_allclose(shown["test"]["target"][crops], to_display(target, exposure), atol=1e-6)
+        inputs, _ = data.degrade_displayed(target, [exposure] * count, QUICK.superres_downsample)
+        np.testing.assert_array_equal(shown["test"]["input"][crops], inputs)
+    # reduced in linear radiance, then shown: a checkerboard's half-size image is its displayed mean,
+    # not the mean of its displayed values
+    checker = (np.indices((8, 8)).sum(0) % 2).astype(np.float32)[None, None].repeat(3, axis=1)
+    inputs, targets = data.degrade_displayed(checker, [1.0])
+    np.testing.assert_allclose(inputs, to_display(np.float32(0.5), 1.0), atol=1e-5)
+    np.testing.assert_array_equal(targets, checker)
+    with pytest.raises(ValueError, match="2 exposures for 1 crops"):
+        data.degrade_displayed(checker, [1.0, 1.0])
+    with pytest.raises(ValueError, match="unknown superresolution space"):
+        data.superres_data(QUICK, [], "log")

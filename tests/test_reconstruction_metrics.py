@@ -135,3 +135,43 @@ def test_upsamplers_beat_nearest_on_a_smooth_image():
         assert result.shape == high.shape and result.dtype == np.float32
         assert 0.0 <= result.min() and result.max() <= 1.0
         assert metrics.psnr(result, high) > floor + 3.0
+
+
+def test_a_display_space_superresolution_net_upsamples_the_shown_image_and_is_measured_as_it_displays():
+    import torch
+
+    from reconstruction import evaluate
+    from reconstruction.models import Superresolution, superresolve
+
+    rng = np.random.default_rng(3)
+    dark = rng.uniform(0.0, 0.02, (16, 24, 3)).astype(np.float32)  # mean pixel 0.01: exposed ~50x
+    bright = rng.uniform(0.2, 0.9, (16, 16, 3)).astype(np.float32)
+    targets = [dark, bright]
+    net = Superresolution("display")  # untrained: returns its bicubic input exactly
+    assert net.config["kwargs"] == {"space": "display"} and Superresolution().config["kwargs"] == {}
+    results = evaluate.superres_images(net, targets, with_lanczos=False)
+    assert results["ours"]["display_psnr"] == pytest.approx(results["bicubic"]["display_psnr"], abs=1e-4)
+    # the displayed output against the displayed target, computed directly
+    exposures = metrics.display_exposures(targets)[1]
+    squared = []
+    for target, exposure in zip(targets, exposures, strict=True):
+        low = evaluate.downsample_2x(target)
+        shown = superresolve(net, metrics.to_display(low, exposure).astype(np.float32))
+        squared.append((shown - metrics.to_display(target, exposure)) ** 2)
+    direct = -10 * math.log10(np.mean(np.concatenate([s.ravel() for s in squared])))
+    assert results["ours"]["display_psnr"] == pytest.approx(direct, abs=1e-3)
+    # the linear net on the same targets upsamples radiance: another image, another score
+    linear = evaluate.superres_images(Superresolution(), targets, with_lanczos=False)
+    assert abs(linear["bicubic"]["display_psnr"] - results["bicubic"]["display_psnr"]) > 0.01
+    with pytest.raises(ValueError, match="unknown superresolution space"):
+        Superresolution("log")
+    with torch.no_grad():
+        assert torch.equal(net(torch.full((1, 1, 8, 8), 0.25)), torch.full((1, 1, 8, 8), 0.25))
+
+
+def test_display_exposures_show_a_black_view_with_the_median_of_the_others():
+    lit = [np.full((4, 4, 3), level, np.float32) for level in (0.5, 0.25, 0.125)]
+    own, shown = metrics.display_exposures([lit[0], np.zeros((4, 4, 3), np.float32), *lit[1:]])
+    assert own[1] is None and shown[1] == pytest.approx(4.0) and shown[0] == pytest.approx(2.0)
+    with pytest.raises(ValueError, match="all 1 references are black"):
+        metrics.display_exposures([np.zeros((4, 4, 3))])

@@ -173,6 +173,7 @@ def tiny_config(spp=(1, 4)):
                                 superres_crop_size=16, superres_crops_per_image=2)
     profile = ProfileConfig(scenes=("cbox-original",), reconstruction_profile="tiny",
                             reconstruction_scenes=("cbox-original",), demodulated_scenes=("cbox-original",),
+                            perceptual_scenes=("cbox-original",),
                             sweep_spp=spp, sweep_width=32, sweep_height=32,
                             sweep_reference_spp=32, combined_width=32, combined_height=32)
     return dataclasses.replace(config, reconstruction=ReconstructionConfig({"tiny": recon}), profiles={"tiny": profile})
@@ -189,6 +190,7 @@ def test_generate_end_to_end_and_reuse(shared_scenes, isolated_cache, tmp_path, 
     assert ratio.kind == "ratio" and ratio.value > 0
     assert names["error_time/cbox-original/denoiser_psnr_4spp"].kind == "psnr"
     assert names["error_time/cbox-original/demodulated_denoiser_psnr_4spp"].kind == "psnr"
+    assert names["error_time/cbox-original/perceptual_denoiser_display_psnr_4spp"].kind == "psnr"
     assert [m.name for m in read_metrics(out / "metrics" / "error_time.json")] == [m.name for m in metrics]
 
     csv = pd.read_csv(out / "error_time.csv")
@@ -200,10 +202,12 @@ def test_generate_end_to_end_and_reuse(shared_scenes, isolated_cache, tmp_path, 
     mitsuba_denoised = csv[csv["method"].isin(["mitsuba+denoiser", "mitsuba+oidn", "mitsuba+demodulated"])]
     assert (mitsuba_denoised["reconstruction_seconds"] > 0).all() and np.isfinite(mitsuba_denoised["input_psnr"]).all()
     by_method = csv.set_index(["method", "spp"])
-    for demodulated, plain in (("kdtrace+demodulated", "kdtrace+denoiser"), ("mitsuba+demodulated", "mitsuba+denoiser")):
-        # the same frame as the paper net's pipeline: the same render seconds and input
-        assert np.allclose(by_method.loc[demodulated, "render_seconds"], by_method.loc[plain, "render_seconds"])
-        assert np.allclose(by_method.loc[demodulated, "input_psnr"], by_method.loc[plain, "input_psnr"])
+    for renderer in ("kdtrace", "mitsuba"):
+        plain = f"{renderer}+denoiser"
+        for variant in (f"{renderer}+demodulated", f"{renderer}+perceptual"):
+            # the same frame as the paper net's pipeline: the same render seconds and input
+            assert np.allclose(by_method.loc[variant, "render_seconds"], by_method.loc[plain, "render_seconds"])
+            assert np.allclose(by_method.loc[variant, "input_psnr"], by_method.loc[plain, "input_psnr"])
     half = csv[csv["method"] == "kdtrace-half+denoiser+superres"]
     assert (half["paths"] == 16 * 16 * half["spp"]).all() and (half["reconstruction_seconds"] > 0).all()
     markdown = (out / "error_time.md").read_text()

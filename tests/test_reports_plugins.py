@@ -142,7 +142,7 @@ def _reconstruction_stand_in(config, profile_name, fresh, progress, denoisers=()
 
 
 def _sweep_stand_in(kind, version, measure_scene, config, profile_name, out_dir, fresh, progress, blend_spp=(),
-                    demodulated_scenes=()):
+                    variant_scenes=None):
     """A synthetic row of our methods (each spp quadruples the seconds and adds 6 dB)."""
     points = []
     for method in error_time_curves.METHODS:

@@ -135,6 +135,8 @@ reconstruction_scenes = ["cbox-original", "cbox-sphere"]
 unseen_scene = "cbox-empty"
 variant_scenes = ["cbox-original"]
 demodulated_scenes = ["cbox-sphere"]
+perceptual_mixed = true
+superres_display = true
 
 [reconstruction.profiles.tiny]
 positions = 1
@@ -166,7 +168,7 @@ def test_generate_end_to_end_and_reuse(tmp_path, monkeypatch, shared_scenes):
         assert f"figures/{stem}.png" in figures and (tmp_path / "out" / "figures" / f"{stem}.png").is_file()
     again = rt.generate(config, "tiny", tmp_path / "out", progress=False)
     table2 = (tmp_path / "out" / "table2.md").read_text()
-    assert "Reused from the cache: 10 of 10 datasets and models." in table2  # the refined test references too
+    assert "Reused from the cache: 12 of 12 datasets and models." in table2  # the refined test references too
     precision, why = resolve_precision(config.reconstruction.profile("tiny").precision)
     assert f"Training arithmetic on this machine: {why or precision}." in table2  # an fp32 fallback says why
     rows = pd.read_csv(tmp_path / "out" / "table2.csv").set_index(["scene", "model"])
@@ -186,7 +188,20 @@ def test_generate_end_to_end_and_reuse(tmp_path, monkeypatch, shared_scenes):
     assert wider > 95107 and f"({wider} parameters against the paper network's 95107)" in table2
     assert "the paper's network (95107 parameters) denoising the noisy colour divided by the albedo" in table2
     assert {m.name for m in metrics} >= {"table2/cbox-original/normal_depth_test_psnr",
-                                         "table2/cbox-sphere/demodulated_test_psnr"}
+                                         "table2/cbox-sphere/demodulated_test_psnr",
+                                         "table3/cbox-empty/mixed_perceptual_display_psnr",
+                                         "table3/cbox-sphere/mixed_perceptual_flip",
+                                         "table5/cbox-sphere/display_trained_display_psnr",
+                                         "table5/photos/display_trained_display_psnr"}
+    table3 = pd.read_csv(tmp_path / "out" / "table3.csv").set_index("scene")
+    assert np.isfinite(table3.loc["cbox-empty (never seen)", "mixed_perceptual_display_psnr"])
+    assert "mixed perceptual" in (tmp_path / "out" / "table3.md").read_text()
+    table5 = pd.read_csv(tmp_path / "out" / "table5.csv").set_index(["data", "split"])
+    # the display-trained net's own baseline is bicubic of the displayed image, not of the radiance
+    shown = table5.loc[("cbox-sphere", "test")]
+    assert shown["displayed_gain_over_bicubic"] == pytest.approx(
+        shown["displayed_ours_display_psnr"] - shown["displayed_bicubic_display_psnr"])
+    assert shown["displayed_bicubic_display_psnr"] != pytest.approx(shown["bicubic_display_psnr"], abs=1e-6)
     psnrs = {m.name: m.value for m in metrics if m.kind == "psnr"}
     assert psnrs == {m.name: m.value for m in again if m.kind == "psnr"}  # same cached models, same numbers
     assert {m.name for m in read_metrics(tmp_path / "out" / "metrics" / "reconstruction.json")} == {m.name for m in again}
