@@ -42,15 +42,22 @@ from reports.error_time_curves import (
     speedup_cell,
 )
 
+#: Load average above the core count by more than this means other processes shared the CPU (the
+#: measurement's own threads bring it to about the core count).
+LOAD_MARGIN = 0.5
+
 
 def load_note(rows: Sequence[dict]) -> str:
     """A sentence on the machine's 1-minute load average around the measurements (rows that recorded it)."""
     loads = [value for row in rows for value in row.get("load_average", [])]
     if not loads:
         return ""
+    cores = os.cpu_count() or 1
+    why = ("above the core count: other processes competed for the CPU and times are inflated, the networks' "
+           "multi-threaded torch times most" if max(loads) > cores + LOAD_MARGIN
+           else "at most the core count, which the measurement's own threads fill")
     return (f"1-minute load average before/after each scene's measurements: {min(loads):.1f}–{max(loads):.1f} on "
-            f"{os.cpu_count()} cores (above the core count, other processes competed for the CPU and times are "
-            "inflated, the networks' multi-threaded torch times most). ")
+            f"{cores} cores ({why}). ")
 
 
 def points_frame(rows: Sequence[dict]) -> pd.DataFrame:

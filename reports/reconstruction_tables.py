@@ -680,12 +680,12 @@ def _quality(m: dict) -> list[dict]:
 
 
 def _cell(column: str, value: Any) -> str:
-    """A table cell: seconds (``*_s``) with 4 decimals, RMSE with 4, relMSE and SMAPE with 3 significant digits,
-    other floats with 2."""
+    """A table cell: seconds (``*_s``) with 4 decimals, RMSE with 4, FLIP with 3, relMSE and SMAPE with 3
+    significant digits, other floats with 2."""
     if isinstance(value, float) and ("relmse" in column or "smape" in column) and math.isfinite(value):
         return f"{value:.3g}"
     if isinstance(value, float):
-        return _f(value, 4 if column.endswith("_s") or "rmse" in column else 2)
+        return _f(value, 4 if column.endswith("_s") or "rmse" in column else 3 if "flip" in column else 2)
     return "" if value is None else str(value)
 
 
@@ -695,14 +695,15 @@ def _markdown(rows: list[dict], scene_columns: tuple[str, ...] = ("scene",)) -> 
     return tabulate(shown, headers="keys", tablefmt="github", disable_numparse=True)
 
 
-def _flips(row: dict, *keys: str) -> str:
-    """FLIP values of one row as ``a / b / c`` (3 decimals; ``-`` where not measured)."""
+def _joined(row: dict, form: str, *keys: str) -> str:
+    """Several values of one row as ``a / b / c`` in ``form`` (``-`` where not measured; empty when none is)."""
     values = [row.get(key) for key in keys]
-    return "" if all(v is None for v in values) else " / ".join("-" if v is None else f"{v:.3f}" for v in values)
+    return "" if all(v is None for v in values) else " / ".join("-" if v is None else form.format(v) for v in values)
 
 
 #: A compact view of a table: (heading, [(column or callable, header)]); the CSV keeps every column.
-View = tuple[str, list[tuple[Any, str]]]
+#: A view may end with the column it is about: without a value in any row (a variant not trained) it is left out.
+View = tuple[str, list[tuple[Any, str]]] | tuple[str, list[tuple[Any, str]], str]
 
 _DISPLAY = ("Display-referred (the paper's space: each view exposed so that its reference's 99th-percentile "
             "luminance is white, clipped, sRGB); PSNR in dB, FLIP lower is better")
@@ -713,7 +714,7 @@ _VIEWS: dict[str, list[View]] = {
         (_DISPLAY, [("scene", "scene"), ("model", "model"), ("paper_test_psnr", "paper PSNR"),
                     ("noisy_display_psnr", "noisy"), ("display_psnr", "ours"), ("oidn_display_psnr", "OIDN"),
                     ("minus_oidn_display", "ours − OIDN"),
-                    (lambda r: _flips(r, "noisy_flip", "flip", "oidn_flip"), "FLIP noisy / ours / OIDN")]),
+                    (lambda r: _joined(r, "{:.3f}", "noisy_flip", "flip", "oidn_flip"), "FLIP noisy / ours / OIDN")]),
         (_LINEAR, [("scene", "scene"), ("model", "model"), ("noisy_test_psnr", "noisy"), ("test_psnr", "ours"),
                    ("oidn_test_psnr", "OIDN"), ("relmse", "relMSE ours"), ("oidn_relmse", "relMSE OIDN"),
                    ("reference_margin_per_view_db", "reference margin per view (dB)")]),
@@ -725,10 +726,15 @@ _VIEWS: dict[str, list[View]] = {
     "table3": [
         (_DISPLAY, [("scene", "scene"), ("views", "views"), ("paper_mixed_psnr", "paper mixed PSNR"),
                     ("noisy_display_psnr", "noisy"), ("display_psnr", "mixed"), ("per_scene_display_psnr", "per-scene"),
-                    ("oidn_display_psnr", "OIDN"), (lambda r: _flips(r, "noisy_flip", "flip", "oidn_flip"),
-                                                    "FLIP noisy / mixed / OIDN"),
-                    ("mixed_perceptual_display_psnr", "mixed perceptual"),
-                    ("mixed_perceptual_flip", "FLIP mixed perceptual")]),
+                    ("oidn_display_psnr", "OIDN"), (lambda r: _joined(r, "{:.3f}", "noisy_flip", "flip", "oidn_flip"),
+                                                    "FLIP noisy / mixed / OIDN")]),
+        ("The perceptual mixed model (profile `perceptual_mixed`), display-referred PSNR in dB, FLIP and HDR relMSE "
+         "lower is better",
+         [("scene", "scene"), ("views", "views"), ("noisy_display_psnr", "noisy"),
+          ("mixed_perceptual_display_psnr", "mixed perceptual"), ("oidn_display_psnr", "OIDN"),
+          (lambda r: _joined(r, "{:.3f}", "noisy_flip", "mixed_perceptual_flip", "oidn_flip"), "FLIP noisy / mixed perceptual / OIDN"),
+          (lambda r: _joined(r, "{:.3g}", "mixed_perceptual_relmse", "oidn_relmse"), "relMSE mixed perceptual / OIDN")],
+         "mixed_perceptual_display_psnr"),
         (_LINEAR, [("scene", "scene"), ("noisy_psnr", "noisy"), ("mixed_psnr", "mixed"), ("per_scene_psnr", "per-scene"),
                    ("oidn_psnr", "OIDN"), ("relmse", "relMSE mixed"),
                    ("mixed_pixels_beyond_input", "pixels beyond input"),
@@ -737,10 +743,14 @@ _VIEWS: dict[str, list[View]] = {
     "table5": [
         (_DISPLAY, [("data", "data"), ("split", "split"), ("images", "images"), ("paper_psnr", "paper PSNR"),
                     ("bicubic_display_psnr", "bicubic"), ("lanczos_display_psnr", "Lanczos"), ("ours_display_psnr", "ours"),
-                    ("display_gain_over_bicubic", "ours − bicubic"),
-                    ("displayed_bicubic_display_psnr", "bicubic of the displayed image"),
-                    ("displayed_ours_display_psnr", "ours, display-trained"),
-                    ("displayed_gain_over_bicubic", "display-trained − its bicubic")]),
+                    ("display_gain_over_bicubic", "ours − bicubic")]),
+        ("The display-trained net (profile `superres_display`) against bicubic of the same displayed image; "
+         "display-referred PSNR in dB, FLIP lower is better",
+         [("data", "data"), ("split", "split"), ("displayed_bicubic_display_psnr", "bicubic of the displayed image"),
+          ("displayed_ours_display_psnr", "ours, display-trained"),
+          ("displayed_gain_over_bicubic", "display-trained − its bicubic"),
+          (lambda r: _joined(r, "{:.3f}", "displayed_bicubic_flip", "displayed_ours_flip"), "FLIP bicubic / display-trained")],
+         "displayed_ours_display_psnr"),
         (_LINEAR, [("data", "data"), ("split", "split"), ("bicubic_psnr", "bicubic"), ("lanczos_psnr", "Lanczos"),
                    ("ours_psnr", "ours"), ("gain_over_bicubic", "ours − bicubic")]),
     ],
@@ -782,7 +792,9 @@ def _view_markdown(rows: list[dict], columns: list[tuple[Any, str]], scene_colum
 
 def _views_markdown(stem: str, rows: list[dict], scene_columns: tuple[str, ...], csv_name: str) -> str:
     """Every compact view of a table, each under its heading, and where the full table is."""
-    parts = [f"### {heading}\n\n{_view_markdown(rows, columns, scene_columns)}" for heading, columns in _VIEWS[stem]]
+    parts = [f"### {heading}\n\n{_view_markdown(rows, columns, scene_columns)}"
+             for heading, columns, *about in _VIEWS[stem]
+             if not about or any(row.get(about[0]) is not None for row in rows)]
     return "\n\n".join(parts) + f"\n\nEvery column, both spaces: [{csv_name}]({csv_name}).\n"
 
 

@@ -221,3 +221,13 @@ def test_generate_end_to_end_and_reuse(shared_scenes, isolated_cache, tmp_path, 
     assert "cbox-original: reusing the row" in captured.out + captured.err
     assert [m.value for m in again] == [m.value for m in metrics]
     assert json.loads((out / "rows" / "error_time" / "cbox-original.json").read_text()) == row
+
+
+def test_the_load_note_says_competition_only_when_the_load_exceeds_the_cores(monkeypatch):
+    from reports.error_time_present import load_note
+
+    monkeypatch.setattr("os.cpu_count", lambda: 2)
+    assert load_note([]) == ""
+    quiet = load_note([{"load_average": [1.8, 2.0]}])
+    assert "1.8–2.0 on 2 cores" in quiet and "competed" not in quiet
+    assert "other processes competed" in load_note([{"load_average": [1.9, 3.1]}])

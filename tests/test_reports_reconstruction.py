@@ -92,6 +92,9 @@ def test_tables_from_measurements(tmp_path):
     assert table3.loc[f"{UNSEEN} (never seen)", "mixed_psnr"] == pytest.approx(22.0)
     assert table3.loc[f"{UNSEEN} (never seen)", "views"] == "all (7)"
     assert table3.loc[f"{UNSEEN} (never seen)", "paper_mixed_psnr"] == TABLE3["unseen"]["test_psnr"]
+    # the views of variants this run did not train are left out, not shown empty
+    assert "### The perceptual mixed model" not in (tmp_path / "table3.md").read_text()
+    assert "### The display-trained net" not in (tmp_path / "table5.md").read_text()
 
     table5 = frames["table5"]
     assert list(table5["data"]) == ["photos"] * 3 + SCENES + ["all scenes"]
@@ -195,7 +198,8 @@ def test_generate_end_to_end_and_reuse(tmp_path, monkeypatch, shared_scenes):
                                          "table5/photos/display_trained_display_psnr"}
     table3 = pd.read_csv(tmp_path / "out" / "table3.csv").set_index("scene")
     assert np.isfinite(table3.loc["cbox-empty (never seen)", "mixed_perceptual_display_psnr"])
-    assert "mixed perceptual" in (tmp_path / "out" / "table3.md").read_text()
+    assert "### The perceptual mixed model" in (tmp_path / "out" / "table3.md").read_text()
+    assert "### The display-trained net" in (tmp_path / "out" / "table5.md").read_text()
     table5 = pd.read_csv(tmp_path / "out" / "table5.csv").set_index(["data", "split"])
     # the display-trained net's own baseline is bicubic of the displayed image, not of the radiance
     shown = table5.loc[("cbox-sphere", "test")]
