@@ -305,7 +305,7 @@ def test_every_committed_network_sits_under_the_key_of_its_recorded_settings():
             model = Denoiser(**record["kwargs"])
             loss = train.default_denoiser_loss(model, settings["denoiser_edge_range_floor"])
         else:
-            model, loss = Superresolution(), EdgeAwareLoss(SUPERRESOLUTION_SIGMA)
+            model, loss = Superresolution(**record["kwargs"]), EdgeAwareLoss(SUPERRESOLUTION_SIGMA)
         assert train.parameter_count(model) == record["parameters"]
         profile = dataclasses.replace(PROFILE, batch_size=settings["batch_size"], seed=settings["seed"],
                                       epochs=settings["epochs"])
