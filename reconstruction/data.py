@@ -703,14 +703,25 @@ def degrade(target: np.ndarray, method: str = "area") -> np.ndarray:
         Upsampled with :func:`reconstruction.models.bicubic_upsample` (the inference
         path's bicubic) and clamped to [0, 1] as :func:`reconstruction.models.superresolve` does.
     """
+    return _upsampled(_halved(target, method))
+
+
+def _halved(target: np.ndarray, method: str) -> np.ndarray:
+    """:func:`halve` of (N, C, H, W) crops with even H and W, as float32 NumPy."""
+    import torch
+
+    if target.ndim != 4 or target.shape[2] % 2 or target.shape[3] % 2:
+        raise ValueError(f"target must be (N, C, H, W) with even H and W, got {target.shape}")
+    return halve(torch.from_numpy(np.ascontiguousarray(target, np.float32)), method).numpy()
+
+
+def _upsampled(small: np.ndarray) -> np.ndarray:
+    """The net's input from half-size crops: the inference path's bicubic 2x, clamped to [0, 1]."""
     import torch
 
     from reconstruction.models import bicubic_upsample
 
-    if target.ndim != 4 or target.shape[2] % 2 or target.shape[3] % 2:
-        raise ValueError(f"target must be (N, C, H, W) with even H and W, got {target.shape}")
-    small = halve(torch.from_numpy(np.ascontiguousarray(target, np.float32)), method)
-    return bicubic_upsample(small, 2).clamp(0.0, 1.0).numpy()
+    return bicubic_upsample(torch.from_numpy(np.ascontiguousarray(small, np.float32)), 2).clamp(0.0, 1.0).numpy()
 
 
 def degrade_displayed(target: np.ndarray, exposures: Any, method: str = "area") -> tuple[np.ndarray, np.ndarray]:
@@ -734,20 +745,16 @@ def degrade_displayed(target: np.ndarray, exposures: Any, method: str = "area") 
     inputs, targets : ndarray, float32, shape (N, C, H, W)
         In [0, 1], display-encoded.
     """
-    import torch
-
     from reconstruction.metrics import to_display
-    from reconstruction.models import bicubic_upsample
 
-    if target.ndim != 4 or target.shape[2] % 2 or target.shape[3] % 2:
-        raise ValueError(f"target must be (N, C, H, W) with even H and W, got {target.shape}")
     if len(exposures) != len(target):
         raise ValueError(f"{len(exposures)} exposures for {len(target)} crops")
-    small = halve(torch.from_numpy(np.ascontiguousarray(target, np.float32)), method).numpy()
-    shown_small = np.stack([to_display(crop, exposure) for crop, exposure in zip(small, exposures, strict=True)])
-    shown = np.stack([to_display(crop, exposure) for crop, exposure in zip(target, exposures, strict=True)])
-    inputs = bicubic_upsample(torch.from_numpy(shown_small.astype(np.float32)), 2).clamp(0.0, 1.0).numpy()
-    return inputs, shown.astype(np.float32)
+    small = _halved(target, method)
+
+    def shown(crops: np.ndarray) -> np.ndarray:
+        return np.stack([to_display(crop, e) for crop, e in zip(crops, exposures, strict=True)]).astype(np.float32)
+
+    return _upsampled(shown(small)), shown(target)
 
 
 def halve(tensor: Any, method: str = "area") -> Any:

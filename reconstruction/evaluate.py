@@ -277,7 +277,7 @@ def superres_images(model: nn.Module, targets: Sequence[np.ndarray], downsample:
         for name, upsample in methods.items():
             if displayed:
                 shown = upsample(metrics.to_display(low, exposure).astype(np.float32))
-                outputs[name].append(srgb_decode(np.clip(shown, 0.0, 1.0)) / np.float32(exposure))
+                outputs[name].append(srgb_decode(shown) / np.float32(exposure))  # every upsampler clamps to [0, 1]
             else:
                 outputs[name].append(upsample(low))
     model.train(was_training)

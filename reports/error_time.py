@@ -96,17 +96,21 @@ from reports.notes import ReportNote
 #: Bump when what a row measures changes: cached rows become stale.
 ROW_VERSION = 6
 
-#: The documented denoiser variants the sweep measures beside the paper's network: key -> the
-#: :func:`reconstruction.train.train_denoiser` options of that variant for a reconstruction profile.
-DENOISER_VARIANTS: dict[str, Callable[[ReconstructionProfile], dict[str, Any]]] = {
-    "demodulated": lambda profile: {"demodulate": True},
-    "perceptual": lambda profile: {"perceptual": profile.denoiser_perceptual_gain},
-}
+#: Table 2's documented denoiser variants (:data:`reports.reconstruction_tables.DENOISER_VARIANTS`, by key)
+#: that the sweep measures beside the paper's network.
+SWEEP_VARIANTS = ("demodulated", "perceptual")
+
+
+def _variants() -> dict:
+    """Key -> :class:`reports.reconstruction_tables.DenoiserVariant` of each of :data:`SWEEP_VARIANTS`."""
+    from reports.reconstruction_tables import DENOISER_VARIANTS
+
+    return {variant.key: variant for variant in DENOISER_VARIANTS if variant.key in SWEEP_VARIANTS}
 
 
 def sweep_variants(profile: ProfileConfig) -> dict[str, tuple[str, ...]]:
-    """The report profile's scenes of each of :data:`DENOISER_VARIANTS` (``demodulated_scenes``, ``perceptual_scenes``)."""
-    return {key: tuple(getattr(profile, f"{key}_scenes")) for key in DENOISER_VARIANTS}
+    """The report profile's scenes of each of :data:`SWEEP_VARIANTS` (``demodulated_scenes``, ``perceptual_scenes``)."""
+    return {key: tuple(getattr(profile, variant.scenes_field)) for key, variant in _variants().items()}
 #: Bump when what a plug-in denoiser's row measures changes.
 PLUGIN_ROW_VERSION = 1
 
@@ -123,7 +127,7 @@ class Reconstruction:
     denoisers: dict[str, Any]
     superres: Any
     blends: dict[str, Any] = dataclasses.field(default_factory=dict)
-    #: A documented variant of the denoiser (a key of :data:`DENOISER_VARIANTS`) -> scene -> its model.
+    #: A documented variant of the denoiser (a key of :data:`SWEEP_VARIANTS`) -> scene -> its model.
     variants: dict[str, dict[str, Any]] = dataclasses.field(default_factory=dict)
 
     @classmethod
@@ -136,7 +140,7 @@ class Reconstruction:
         ``all_scenes`` (the profile's reconstruction scenes), as for Table 5. With
         ``blend_spp``, each denoiser's blend weights at those spp are fitted (or reused) on
         its scene's validation views (:func:`reconstruction.blend.fit_blend_weights`).
-        ``variant_scenes`` maps a key of :data:`DENOISER_VARIANTS` to the scenes that also get
+        ``variant_scenes`` maps a key of :data:`SWEEP_VARIANTS` to the scenes that also get
         that variant of their denoiser (Table 2's variants, the same cached models).
         """
         from kdtrace.scenes import load_scene
@@ -152,8 +156,9 @@ class Reconstruction:
                 blends[name] = fit_blend_weights(model, generate_dataset(name, profile, progress=False),
                                                  load_scene(name), blend_spp, profile.max_depth, profile.seed,
                                                  progress=progress)
+        known = _variants()
         variants = {key: {name: train_denoiser([name], profile, progress=progress,
-                                               **DENOISER_VARIANTS[key](profile)).model for name in names}
+                                               **known[key].train_options(profile)).model for name in names}
                     for key, names in (variant_scenes or {}).items() if names}
         return cls(denoisers, superres, blends, variants)
 
@@ -657,7 +662,7 @@ def scene_metrics(row: dict, profile: ProfileConfig, recon: ReconstructionProfil
                       f"{row['height']} {spp} spp, same run")]
     for method, metric, what in (("kdtrace+denoiser", "denoiser", "per-scene denoiser"),
                                  *((f"kdtrace+{key}", f"{key}_denoiser", f"{key} per-scene denoiser")
-                                   for key in DENOISER_VARIANTS)):
+                                   for key in SWEEP_VARIANTS)):
         denoised = points[(points["method"] == method) & (points["spp"] == recon.spp)]
         if len(denoised):
             metrics.append(Metric(f"error_time/{name}/{metric}_psnr_{recon.spp}spp", "psnr", float(denoised["psnr"].iloc[0]),

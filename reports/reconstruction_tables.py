@@ -53,7 +53,7 @@ from tabulate import tabulate
 from tqdm import tqdm
 
 from kdtrace.cache import atomic_write_bytes
-from kdtrace.config import Config
+from kdtrace.config import Config, ReconstructionProfile
 from kdtrace.provenance import stamp
 from reports.metrics import Metric, write_metrics
 from reports.notes import ReportNote
@@ -93,6 +93,12 @@ class DenoiserVariant:
     demodulate: bool = False
     perceptual: bool = False
     warmup_field: str = ""
+
+    def train_options(self, recon: ReconstructionProfile) -> dict[str, Any]:
+        """The :func:`reconstruction.train.train_denoiser` arguments of this variant under ``recon``."""
+        return {"auxiliary": self.auxiliary, "demodulate": self.demodulate,
+                "perceptual": recon.denoiser_perceptual_gain if self.perceptual else 0.0,
+                "warmup_steps": getattr(recon, self.warmup_field) if self.warmup_field else 0}
 
 
 #: The documented variants: the paper's network fed albedo, normal and depth (10 input channels
@@ -293,9 +299,7 @@ def _measure(config: Config, profile_name: str, fresh: bool, progress: bool,
     mixed = stage("mixed denoiser", lambda: train_denoiser(scenes, recon.mixed, progress=False))
     variant_models: dict[DenoiserVariant, dict[str, Any]] = {
         variant: {name: stage(f"{variant.label} denoiser {name}", lambda name=name, variant=variant: train_denoiser(
-            [name], recon, auxiliary=variant.auxiliary, demodulate=variant.demodulate,
-            perceptual=recon.denoiser_perceptual_gain if variant.perceptual else 0.0, progress=False,
-            warmup_steps=getattr(recon, variant.warmup_field) if variant.warmup_field else 0)) for name in names}
+            [name], recon, progress=False, **variant.train_options(recon))) for name in names}
         for variant, names in variants.items()}
     mixed_perceptual = (stage("perceptual mixed denoiser", lambda: train_denoiser(
         scenes, recon.mixed, perceptual=recon.denoiser_perceptual_gain, progress=False))
