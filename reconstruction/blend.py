@@ -7,25 +7,32 @@ The paper's network stays the measured object; this is the documented variant be
 
     output = w(spp) * denoised + (1 - w(spp)) * noisy,   w in [0, 1],
 
-with 95,107 network parameters plus one weight per fitted spp. ``w(spp)`` minimises the
-squared error against the references of the scene's **validation** views (never the test
-views or the sweep's frame), each rendered by our path tracer at that spp with its own
-seed:
+with 95,107 network parameters plus one weight per fitted spp. ``w(spp)`` is fitted on the
+references of the scene's **validation** views (never the test views or the sweep's frame),
+each rendered by our path tracer at that spp with its own seed, in every space the suite
+judges images in (:data:`SPACES`):
 
-    w* = sum((d - n) * (r - n)) / sum((d - n) ** 2), clipped to [0, 1],
+``linear``
+    the squared error of the linear images clipped to [0, 1] (our linear PSNR);
+``display``
+    the squared error of the displayed images (each view's exposure and the sRGB curve,
+    :func:`reconstruction.metrics.to_display`; our display PSNR);
+``flip``
+    the LDR-FLIP error map of the displayed images (our FLIP).
 
-over the pixels of all validation views (linear values clipped to [0, 1], the space of
-our PSNR). The reference's own noise is independent of ``n`` and ``d`` and averages out of
-the numerator, so a noisy reference gives an unbiased, only noisier, ``w*``. Any weight in
-``[0, 2 w*]`` has a lower squared error than the input itself, and ``w*`` sits in the middle
-of that interval: half or twice the true optimum still does not lose to the input.
-
-Few validation pixels (the quick profile has two 64x64 views) make ``w*`` uncertain, and an
-over-estimate is what can lose to the input. So the weight used is a lower confidence
-bound: the :data:`BOUND_QUANTILE` quantile of ``w*`` over :data:`BOOTSTRAP_SAMPLES` bootstrap
-resamplings of :data:`BLOCK` x :data:`BLOCK` pixel blocks (blocks, since neighbouring pixels'
-errors are correlated after denoising). Between fitted spp the weight is interpolated
-linearly in log2(spp), and held constant outside.
+For each space the blend's error is evaluated at the weights of :data:`FIT_GRID` and summed
+per :data:`BLOCK` x :data:`BLOCK` pixel block of every validation view
+(:func:`view_error_curves`). The reference's own noise is independent of ``n`` and ``d``: in
+the squared errors it adds the same amount at every weight, so a noisy reference moves the
+minimiser only by chance. An over-estimated weight is what loses to the input (in squared
+error any weight up to twice the optimum still beats it), and few validation pixels (the
+quick profile has two 64x64 views) make the minimiser uncertain. So each space's weight is a
+lower confidence bound: the :data:`BOUND_QUANTILE` quantile of the minimising weight over
+:data:`BOOTSTRAP_SAMPLES` bootstrap resamplings of the blocks (blocks, since neighbouring
+pixels' errors are correlated after denoising; :func:`lower_bound_weight`). ``w(spp)`` is the
+smallest of the three, so on the validation views the blend is no worse than its input in
+any of them. Between fitted spp the weight is interpolated linearly in log2(spp), and held
+constant outside.
 
 Fitted weights are cached by content key (dataset, weights of the model, spp list, path
 length, seed) under ``cache_root()/blend``.
@@ -47,7 +54,9 @@ the frame's optimum was 0.08, 0.07 dB below the input), so the cap is the same
 :data:`BOUND_QUANTILE` lower bound as the validated weight: ``w_h`` is the weight on a grid of
 :data:`CAP_GRID` values minimising the error of :data:`BOOTSTRAP_SAMPLES` resamplings of the
 frame's :data:`BLOCK` x :data:`BLOCK` blocks. The weight used is ``min(w(spp), cap)``. The
-cap costs two more denoiser passes and the error curves (timed in the sweep).
+cap costs two more denoiser passes and the error curves (timed in the sweep). It is in the
+linear space only: against a noisy target, the display curve's minimiser is biased by the
+sRGB curve's bend over the target's noise, and FLIP counts the target's noise as error.
 """
 
 from __future__ import annotations
@@ -68,7 +77,12 @@ from kdtrace.cache import atomic_write_bytes, cache_root, content_key
 from reconstruction._blend_kernels import clipped_blend_block_errors
 
 #: Bump when the fit changes: cached weights become stale.
-BLEND_VERSION = 1
+BLEND_VERSION = 2
+#: The spaces a weight is fitted in (the module docstring); the weight used is their smallest.
+SPACES = ("linear", "display", "flip")
+#: Blend weights at which :func:`view_error_curves` evaluates the validation views (steps of
+#: 0.05: FLIP, the costly space, takes 0.05 s per 256x256 view and weight).
+FIT_GRID = np.linspace(0.0, 1.0, 21)
 #: Side of the pixel blocks resampled by the bootstrap, pixels.
 BLOCK = 8
 #: Bootstrap resamplings of the blocks.
@@ -91,17 +105,31 @@ class BlendWeights:
         ``w(spp)`` in [0, 1] for each.
     views : int
         Validation views the weights were fitted on.
+
+    by_space : dict of str -> tuple of float
+        Each space's own bound per spp (:data:`SPACES`), whose smallest is ``weights``;
+        empty when not recorded.
     """
 
     spp: tuple[int, ...]
     weights: tuple[float, ...]
     views: int
+    by_space: dict[str, tuple[float, ...]] = dataclasses.field(default_factory=dict)
 
     def __post_init__(self) -> None:
         if not self.spp or len(self.spp) != len(self.weights) or list(self.spp) != sorted(set(self.spp)):
             raise ValueError("blend weights need one weight per distinct, increasing spp")
         if min(self.spp) < 1 or not all(0.0 <= w <= 1.0 for w in self.weights):
             raise ValueError("blend spp must be >= 1 and weights in [0, 1]")
+        for space, bounds in self.by_space.items():
+            if len(bounds) != len(self.spp):
+                raise ValueError(f"blend bounds of {space!r} need one value per spp")
+
+    def limiting_space(self, spp: int) -> str:
+        """The space whose bound set ``w(spp)`` at a fitted ``spp`` ("" when not recorded)."""
+        index = self.spp.index(spp)
+        limits = [space for space, bounds in self.by_space.items() if bounds[index] == self.weights[index]]
+        return "/".join(limits)
 
     def weight(self, spp: int, cap: float = 1.0) -> float:
         """``min(w(spp), cap)``: ``w`` linear in log2(spp) between fitted spp, constant outside them.
@@ -144,38 +172,70 @@ def _bootstrap_counts(blocks: int, seed: int) -> np.ndarray:
         BOOTSTRAP_SAMPLES, blocks).astype(np.float64)
 
 
-def optimal_weight(noisy: Sequence[np.ndarray], denoised: Sequence[np.ndarray], references: Sequence[np.ndarray],
-                   quantile: float | None = None, seed: int = 0) -> float:
-    """The least-squares weight ``w*`` of the denoised images over their inputs, clipped to [0, 1].
+def lower_bound_weight(curves: np.ndarray, weights: np.ndarray, quantile: float | None = BOUND_QUANTILE,
+                       seed: int = 0) -> float:
+    """The weight minimising summed block errors, as a bootstrap lower bound.
 
     Parameters
     ----------
-    noisy, denoised, references : sequences of (H, W, 3) arrays
-        Compared as linear values clipped to [0, 1].
+    curves : (len(weights), blocks) array
+        Each block's error at each weight (:func:`view_error_curves`, :func:`block_error_curves`).
+    weights : 1-D array
+        The weights, increasing.
     quantile : float, optional
-        None: ``w*`` itself. Else the ``quantile`` of ``w*`` over :data:`BOOTSTRAP_SAMPLES`
-        resamplings of :data:`BLOCK`-pixel blocks (a lower confidence bound for small values).
+        The ``quantile`` of the minimiser over :data:`BOOTSTRAP_SAMPLES` resamplings of the
+        blocks (default :data:`BOUND_QUANTILE`, a lower bound); None: the minimiser of the sum.
     seed : int
         Seed of the bootstrap.
 
     Returns
     -------
     float
-        The weight; 1 when denoised and noisy images are identical (nothing to blend).
+        One of ``weights`` (ties: the smallest), or its quantile in between.
     """
-    numerators, denominators = [], []
-    for n, d, r in zip(noisy, denoised, references, strict=True):
-        n, d, r = (np.clip(np.asarray(x, np.float64), 0.0, 1.0) for x in (n, d, r))
-        numerators.append(_block_sums((d - n) * (r - n), BLOCK))
-        denominators.append(_block_sums((d - n) ** 2, BLOCK))
-    numerator, denominator = np.concatenate(numerators), np.concatenate(denominators)
-    if denominator.sum() == 0.0:
-        return 1.0
+    curves = np.asarray(curves, np.float64)
+    if curves.ndim != 2 or curves.shape[0] != len(weights):
+        raise ValueError(f"curves must have shape (len(weights)={len(weights)}, blocks), got {curves.shape}")
+    if not np.all(np.isfinite(curves)):
+        raise ValueError("the blend's errors are not finite")
     if quantile is None:
-        return float(np.clip(numerator.sum() / denominator.sum(), 0.0, 1.0))
-    counts = _bootstrap_counts(len(numerator), seed)
-    resampled = counts @ numerator / np.maximum(counts @ denominator, 1e-300)
-    return float(np.clip(np.quantile(resampled, quantile), 0.0, 1.0))
+        return float(weights[int(np.argmin(curves.sum(axis=1)))])
+    counts = _bootstrap_counts(curves.shape[1], seed)
+    return float(np.quantile(np.asarray(weights)[np.argmin(counts @ curves.T, axis=1)], quantile))
+
+
+def view_error_curves(noisy: np.ndarray, denoised: np.ndarray, reference: np.ndarray, exposure: float,
+                      weights: np.ndarray = FIT_GRID) -> dict[str, np.ndarray]:
+    """Per block and weight, the error of ``noisy + w (denoised - noisy)`` in each of :data:`SPACES`.
+
+    Parameters
+    ----------
+    noisy, denoised, reference : (H, W, 3) arrays
+        Linear radiance of one view.
+    exposure : float
+        The view's display exposure (:func:`reconstruction.metrics.display_exposures`).
+    weights : 1-D array
+        Blend weights in [0, 1] (default :data:`FIT_GRID`).
+
+    Returns
+    -------
+    dict of str -> numpy.ndarray
+        Per space, shape (len(weights), blocks), float64: ``linear`` the clipped squared
+        error, ``display`` the displayed images' squared error, ``flip`` the sum of the
+        LDR-FLIP error map, each over a :data:`BLOCK` x :data:`BLOCK` block.
+    """
+    from reconstruction.metrics import displayed_flip, to_display
+
+    noisy, denoised, reference = (np.asarray(x, np.float64) for x in (noisy, denoised, reference))
+    curves = {"linear": block_error_curves(noisy, denoised, reference, weights)}
+    shown_reference = to_display(reference, exposure)
+    display, flip = [], []
+    for w in weights:
+        shown = to_display(noisy + w * (denoised - noisy), exposure)
+        display.append(_block_sums((shown - shown_reference) ** 2, BLOCK))
+        flip.append(_block_sums(displayed_flip(shown, shown_reference)[0][..., None], BLOCK))
+    curves["display"], curves["flip"] = np.array(display), np.array(flip)
+    return curves
 
 
 def block_error_curves(noisy: np.ndarray, denoised: np.ndarray, target: np.ndarray,
@@ -256,8 +316,7 @@ def frame_weight_cap(denoise: Callable[[np.ndarray, np.ndarray], np.ndarray], fi
     curves = sum(block_error_curves(a.rgb, denoise(a.rgb, a.albedo), b.rgb) for a, b in ((first, second), (second, first)))
     if not np.all(np.isfinite(curves)):
         raise ValueError("the halves or their denoised images are not finite")
-    counts = _bootstrap_counts(curves.shape[1], seed)
-    half = float(np.quantile(CAP_GRID[np.argmin(counts @ curves.T, axis=1)], quantile))
+    half = lower_bound_weight(curves, CAP_GRID, quantile, seed)
     return half / (2.0 - half)
 
 
@@ -301,6 +360,7 @@ def fit_blend_weights(model: nn.Module, dataset, scene, spp_list: Sequence[int],
     from kdtrace.render import render
     from reconstruction.data import view_camera
     from reconstruction.evaluate import denoise_view
+    from reconstruction.metrics import display_exposures
 
     spp_list = sorted({int(s) for s in spp_list})
     names = dataset.views(split)
@@ -311,15 +371,17 @@ def fit_blend_weights(model: nn.Module, dataset, scene, spp_list: Sequence[int],
     path = cache_root() / "blend" / f"{key[:24]}.json"
     if path.is_file():
         stored = json.loads(path.read_text())
-        return BlendWeights(tuple(stored["spp"]), tuple(stored["weights"]), stored["views"])
+        return BlendWeights(tuple(stored["spp"]), tuple(stored["weights"]), stored["views"],
+                            {space: tuple(bounds) for space, bounds in stored["by_space"].items()})
     records = {view["name"]: view for view in dataset.manifest["views"]}
     views = [dataset.load_view(name) for name in names]
-    weights = []
+    _, exposures = display_exposures([view["reference"] for view in views])
+    bounds: dict[str, list[float]] = {space: [] for space in SPACES}
     bar = tqdm(total=len(spp_list) * len(names), desc="blend weights", unit="render",
                disable=None if progress is None else not progress, leave=False)
     for spp in spp_list:
-        noisy, denoised, references = [], [], []
-        for name, view in zip(names, views, strict=True):
+        curves: dict[str, list[np.ndarray]] = {space: [] for space in SPACES}
+        for name, view, exposure in zip(names, views, exposures, strict=True):
             record = records[name]
             camera = view_camera(record)
             frame = render(scene, spp=spp, max_depth=max_depth, seed=view_seed(seed, record["index"], spp),
@@ -327,12 +389,14 @@ def fit_blend_weights(model: nn.Module, dataset, scene, spp_list: Sequence[int],
             with torch.no_grad():
                 output = denoise_view(model, {"noisy": frame.rgb, "albedo": frame.albedo,
                                               "reference": view["reference"]})
-            noisy.append(frame.rgb)
-            denoised.append(output)
-            references.append(view["reference"])
+            for space, curve in view_error_curves(frame.rgb, output, view["reference"], exposure).items():
+                curves[space].append(curve)
             bar.update()
-        weights.append(optimal_weight(noisy, denoised, references, BOUND_QUANTILE, seed=seed + spp))
+        for space in SPACES:
+            bounds[space].append(lower_bound_weight(np.concatenate(curves[space], axis=1), FIT_GRID,
+                                                    seed=seed + spp))
     bar.close()
-    result = BlendWeights(tuple(spp_list), tuple(weights), len(names))
+    result = BlendWeights(tuple(spp_list), tuple(min(values) for values in zip(*bounds.values(), strict=True)),
+                          len(names), {space: tuple(values) for space, values in bounds.items()})
     atomic_write_bytes(path, json.dumps({**dataclasses.asdict(result), "key": key}, indent=1).encode())
     return result

@@ -166,7 +166,7 @@ def to_display(image, exposure: float) -> np.ndarray:
     return srgb_encode(np.asarray(image, dtype=np.float64) * exposure)
 
 
-def _displayed_flip(shown_test: np.ndarray, shown_reference: np.ndarray) -> tuple[np.ndarray, float]:
+def displayed_flip(shown_test: np.ndarray, shown_reference: np.ndarray) -> tuple[np.ndarray, float]:
     """LDR-FLIP error map (H, W) and its mean of two already displayed (H, W, 3) images."""
     import flip_evaluator
 
@@ -178,7 +178,7 @@ def _displayed_flip(shown_test: np.ndarray, shown_reference: np.ndarray) -> tupl
 def flip_map(test, reference, exposure: float = 1.0) -> tuple[np.ndarray, float]:
     """LDR-FLIP error map (H, W) of the displayed images and its mean (see module docstring)."""
     test, reference = _checked_pair(test, reference, rgb_only=True)
-    return _displayed_flip(to_display(test, exposure), to_display(reference, exposure))
+    return displayed_flip(to_display(test, exposure), to_display(reference, exposure))
 
 
 def flip(test, reference, exposure: float = 1.0) -> float:
@@ -211,7 +211,7 @@ def display_metrics(test, reference, exposure: float | None = None, name: str = 
               "display_rmse": rmse(shown_test, shown_reference)}
     if min(test.shape[:2]) >= 7:
         result["display_ssim"] = ssim(shown_test, shown_reference)
-    result["flip"] = _displayed_flip(shown_test, shown_reference)[1]
+    result["flip"] = displayed_flip(shown_test, shown_reference)[1]
     return result
 
 

@@ -94,7 +94,7 @@ from reports.metrics import Metric, write_metrics
 from reports.notes import ReportNote
 
 #: Bump when what a row measures changes: cached rows become stale.
-ROW_VERSION = 6
+ROW_VERSION = 7
 
 #: Table 2's documented denoiser variants (:data:`reports.reconstruction_tables.DENOISER_VARIANTS`, by key)
 #: that the sweep measures beside the paper's network.
@@ -410,7 +410,15 @@ def measure_scene(name: str, config: Config, profile_name: str, models: Reconstr
                       **reference_floor(reference)},
         "mitsuba_variant": mitsuba.variant, "mitsuba_threads": mitsuba.threads, "torch_threads": torch.get_num_threads(),
         "points": points, "warnings": sorted({str(w.message) for w in caught}),
+        **({"blend": blend_record(models.blends[name])} if name in models.blends else {}),
     }
+
+
+def blend_record(weights) -> dict[str, Any]:
+    """A row's record of the fitted blend weights: ``spp``, ``weights``, ``views``, ``by_space``, ``limited_by``."""
+    return {"spp": list(weights.spp), "weights": list(weights.weights), "views": weights.views,
+            "by_space": {space: list(bounds) for space, bounds in weights.by_space.items()},
+            "limited_by": [weights.limiting_space(spp) for spp in weights.spp]}
 
 
 #: Reconstruction profile fields the sweep's and §6.4's rows do not depend on: the datasets'
@@ -680,6 +688,12 @@ def scene_metrics(row: dict, profile: ProfileConfig, recon: ReconstructionProfil
                                   float(margins.min()),
                                   f"dB ({space}), the smallest PSNR gain over its own noisy input of ours + denoiser "
                                   f"blended with the input, over the sweep spp (at {worst} spp); >= 0: never below the input"))
+    if len(blended) and all_measured(blended, "input_flip", "kdtrace+denoiser-blend"):
+        excess = blended["flip"] - blended["input_flip"]
+        worst = int(blended["spp"].iloc[int(np.argmax(excess.to_numpy()))])
+        metrics.append(Metric(f"error_time/{name}/blended_denoiser_flip_excess_over_input", "flip", float(excess.max()),
+                              f"the largest FLIP of ours + denoiser blended with the input minus its noisy input's, "
+                              f"over the sweep spp (at {worst} spp); <= 0: never worse than the input"))
     return metrics + plugin_metrics(row, recon)
 
 

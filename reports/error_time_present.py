@@ -131,8 +131,19 @@ def scene_markdown(row: dict, recon: ReconstructionProfile) -> str:
             lines += [f"No reconstruction is worse than its own noisy input by {what} at any spp.", ""]
     if "weight" in points:
         blended = points[points["method"] == "kdtrace+denoiser-blend"].sort_values("spp")
-        lines += ["Blend weights w(spp) of the denoiser (fitted on the validation views): "
-                  + ", ".join(f"{spp} spp {w:.2f}" for spp, w in zip(blended["spp"], blended["weight"], strict=True))
+        fitted = row.get("blend", {})
+        limits = dict(zip(fitted.get("spp", []), zip(fitted.get("weights", []), fitted.get("limited_by", []),
+                                                        strict=True), strict=True))
+
+        def limit(spp: int, weight: float) -> str:
+            if spp not in limits:
+                return ""
+            return " (frame cap)" if weight < limits[spp][0] else f" ({limits[spp][1]})"
+
+        lines += ["Blend weights of the denoiser, min(w(spp), the frame's cap); w(spp) is fitted on the validation "
+                  "views as the smallest of its linear, display and FLIP bounds (what set the weight in brackets): "
+                  + ", ".join(f"{spp} spp {w:.2f}{limit(spp, w)}"
+                              for spp, w in zip(blended["spp"], blended["weight"], strict=True))
                   + ".", ""]
     failures = {spec: status for spec, status in row.get("plugins", {}).items() if status != "ok"}
     if failures:

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from reconstruction import blend
-from reconstruction.blend import BlendWeights, optimal_weight
+from reconstruction.blend import BlendWeights
 
 
 def _images(seed: int, noise: float, error: float, count: int = 2, size: int = 64):
@@ -20,37 +20,74 @@ def _images(seed: int, noise: float, error: float, count: int = 2, size: int = 6
     return noisy, denoised, truth
 
 
-def test_weight_is_the_least_squares_blend():
+def _least_squares_weight(noisy, denoised, references) -> float:
+    """The obvious reference: the closed-form minimiser of the squared error, clipped to [0, 1]."""
+    numerator = sum(np.sum((d - n) * (r - n)) for n, d, r in zip(noisy, denoised, references, strict=True))
+    denominator = sum(np.sum((d - n) ** 2) for n, d in zip(noisy, denoised, strict=True))
+    return float(np.clip(numerator / denominator, 0.0, 1.0))
+
+
+def _linear_curves(noisy, denoised, references, weights=blend.CAP_GRID):
+    return np.concatenate([blend.block_error_curves(n, d, r, weights)
+                           for n, d, r in zip(noisy, denoised, references, strict=True)], axis=1)
+
+
+def test_the_minimiser_of_the_curves_is_the_least_squares_blend():
     noisy, denoised, truth = _images(0, noise=0.05, error=0.05)
-    w = optimal_weight(noisy, denoised, truth)
-    grid = np.linspace(0, 1, 201)
-    errors = [sum(np.sum((w_ * d + (1 - w_) * n - t) ** 2) for n, d, t in zip(noisy, denoised, truth, strict=True))
-              for w_ in grid]
-    assert w == pytest.approx(grid[int(np.argmin(errors))], abs=0.005)
+    w = blend.lower_bound_weight(_linear_curves(noisy, denoised, truth), blend.CAP_GRID, quantile=None)
+    assert w == pytest.approx(_least_squares_weight(noisy, denoised, truth), abs=0.005)
     assert 0.2 < w < 0.8
 
 
 def test_a_clean_denoiser_gets_weight_one_and_a_useless_one_zero():
-    noisy, denoised, truth = _images(1, noise=0.1, error=0.0)
-    assert optimal_weight(noisy, denoised, truth) == pytest.approx(1.0, abs=0.02)
-    noisy, denoised, truth = _images(2, noise=0.001, error=0.2)
-    assert optimal_weight(noisy, denoised, truth) == pytest.approx(0.0, abs=0.02)
-    assert optimal_weight(noisy, noisy, truth) == 1.0  # nothing to blend
+    for seed, noise, error, expected in ((1, 0.1, 0.0, 1.0), (2, 0.001, 0.2, 0.0)):
+        noisy, denoised, truth = _images(seed, noise=noise, error=error)
+        assert blend.lower_bound_weight(_linear_curves(noisy, denoised, truth), blend.CAP_GRID) == pytest.approx(
+            expected, abs=0.02)
 
 
 def test_a_noisy_reference_leaves_the_weight_unbiased_and_the_bound_lies_below():
     noisy, denoised, truth = _images(3, noise=0.05, error=0.05, count=8)
-    exact = optimal_weight(noisy, denoised, truth)
+    exact = _least_squares_weight(noisy, denoised, truth)
     rng = np.random.default_rng(4)
     references = [t + 0.05 * rng.standard_normal(t.shape) for t in truth]
-    assert optimal_weight(noisy, denoised, references) == pytest.approx(exact, abs=0.05)
-    bound = optimal_weight(noisy, denoised, references, quantile=0.1, seed=5)
-    assert bound < optimal_weight(noisy, denoised, references)
-    assert bound == optimal_weight(noisy, denoised, references, quantile=0.1, seed=5)  # seeded
+    curves = _linear_curves(noisy, denoised, references)
+    assert blend.lower_bound_weight(curves, blend.CAP_GRID, quantile=None) == pytest.approx(exact, abs=0.05)
+    bound = blend.lower_bound_weight(curves, blend.CAP_GRID, seed=5)
+    assert bound < blend.lower_bound_weight(curves, blend.CAP_GRID, quantile=None)
+    assert bound == blend.lower_bound_weight(curves, blend.CAP_GRID, seed=5)  # seeded
+    with pytest.raises(ValueError, match="shape"):
+        blend.lower_bound_weight(curves[:-1], blend.CAP_GRID)
+    curves[3, 2] = np.nan
+    with pytest.raises(ValueError, match="finite"):
+        blend.lower_bound_weight(curves, blend.CAP_GRID)
+
+
+def test_view_error_curves_measure_each_space_of_the_blend():
+    """Each space's curve summed over blocks is that space's error of the blended image (the metrics' own code)."""
+    from reconstruction import metrics
+
+    noisy, denoised, truth = (images[0] for images in _images(6, noise=0.08, error=0.04, size=40))
+    exposure = 1.3
+    curves = blend.view_error_curves(noisy, denoised, truth, exposure)
+    assert set(curves) == set(blend.SPACES)
+    assert all(curve.shape == (len(blend.FIT_GRID), 25) for curve in curves.values())  # 5 x 5 blocks of 8
+    pixels = truth.size
+    for k in (0, 7, 20):
+        image = noisy + blend.FIT_GRID[k] * (denoised - noisy)
+        shown = metrics.display_metrics(image, truth, exposure)
+        assert -10 * np.log10(curves["linear"][k].sum() / pixels) == pytest.approx(metrics.psnr(image, truth))
+        assert -10 * np.log10(curves["display"][k].sum() / pixels) == pytest.approx(shown["display_psnr"])
+        assert curves["flip"][k].sum() / truth[..., 0].size == pytest.approx(shown["flip"], rel=1e-5)
+    # a bound without the bootstrap is a weight of the grid
+    bounds = {space: blend.lower_bound_weight(curve, blend.FIT_GRID, quantile=None) for space, curve in curves.items()}
+    assert all(bound in blend.FIT_GRID for bound in bounds.values())
 
 
 def test_weights_interpolate_in_log_spp_and_blend():
-    weights = BlendWeights((1, 4, 16), (1.0, 0.5, 0.0), views=2)
+    weights = BlendWeights((1, 4, 16), (1.0, 0.5, 0.0), views=2,
+                           by_space={"linear": (1.0, 0.6, 0.0), "flip": (1.0, 0.5, 0.1)})
+    assert weights.limiting_space(1) == "linear/flip" and weights.limiting_space(4) == "flip"
     assert weights.weight(1) == 1.0 and weights.weight(2) == pytest.approx(0.75) and weights.weight(64) == 0.0
     noisy, denoised = np.zeros((2, 2, 3), np.float32), np.ones((2, 2, 3), np.float32)
     blended = weights.apply(noisy, denoised, 4)
@@ -64,6 +101,8 @@ def test_bad_weights_are_refused(spp, values):
 
 
 def test_bad_calls_are_refused():
+    with pytest.raises(ValueError, match="one value per spp"):
+        BlendWeights((1, 4), (0.5, 0.5), views=1, by_space={"flip": (0.5,)})
     weights = BlendWeights((4,), (0.5,), views=1)
     with pytest.raises(ValueError, match="spp"):
         weights.weight(0)

@@ -199,6 +199,8 @@ def test_generate_end_to_end_and_reuse(shared_scenes, isolated_cache, tmp_path, 
     blended = csv[csv["method"] == "kdtrace+denoiser-blend"]
     assert blended["weight"].between(0, 1).all() and np.isfinite(blended["input_psnr"]).all()
     assert names["error_time/cbox-original/blended_denoiser_margin_over_input_db"].kind == "psnr"
+    excess = names["error_time/cbox-original/blended_denoiser_flip_excess_over_input"]
+    assert excess.kind == "flip" and excess.value == pytest.approx((blended["flip"] - blended["input_flip"]).max())
     mitsuba_denoised = csv[csv["method"].isin(["mitsuba+denoiser", "mitsuba+oidn", "mitsuba+demodulated"])]
     assert (mitsuba_denoised["reconstruction_seconds"] > 0).all() and np.isfinite(mitsuba_denoised["input_psnr"]).all()
     by_method = csv.set_index(["method", "spp"])
@@ -212,6 +214,7 @@ def test_generate_end_to_end_and_reuse(shared_scenes, isolated_cache, tmp_path, 
     assert (half["paths"] == 16 * 16 * half["spp"]).all() and (half["reconstruction_seconds"] > 0).all()
     markdown = (out / "error_time.md").read_text()
     assert "](error_time/cbox-original.png)" in markdown and "Equal error" in markdown
+    assert "smallest of its linear, display and FLIP bounds" in markdown
     assert (out / "error_time" / "cbox-original.png").read_bytes()[:4] == b"\x89PNG"
 
     row = json.loads((out / "rows" / "error_time" / "cbox-original.json").read_text())
