@@ -18,6 +18,10 @@ convention of :mod:`reconstruction.metrics`), and PSNR = −20·log10(RMSE). The
 per-image PSNRs is reported beside it (``psnr_mean``) but not used for comparisons: it is
 inflated by flat, nearly error-free images (a crop of a plain wall can reach 50 dB).
 
+The display-referred metrics of an image pair (FLIP and SSIM take about 2 s on a 2-megapixel
+photo) are reused by content hash (:func:`cached_display_metrics`): a rerun, or a second
+table on the same images (the noisy input and OIDN beside each model), measures them once.
+
 Entry point :func:`main_quality` trains (or reuses, by content key) the per-scene
 denoisers and one superresolution net over the given scenes, then writes the table as
 Markdown and CSV, each atomically.
@@ -25,9 +29,12 @@ Markdown and CSV, each atomically.
 
 from __future__ import annotations
 
+import hashlib
 import io
+import json
 import math
 from collections.abc import Sequence
+from importlib.metadata import version
 from pathlib import Path
 
 import numpy as np
@@ -35,7 +42,7 @@ import pandas as pd
 import torch
 from torch import nn
 
-from kdtrace.cache import atomic_write_bytes
+from kdtrace.cache import atomic_write_bytes, cache_root, content_key, source_fingerprint
 from kdtrace.config import ReconstructionProfile
 from kdtrace.markdown import markdown_table
 from reconstruction.data import resolve_profile
@@ -88,7 +95,7 @@ def pooled(predictions: Sequence[np.ndarray], references: Sequence[np.ndarray]) 
         relative["relmse"] += metrics.relmse(prediction, reference) * prediction.size
         relative["smape"] += metrics.smape(prediction, reference) * prediction.size
         if display is not None:
-            shown = metrics.display_metrics(prediction, reference, exposures[index])
+            shown = cached_display_metrics(prediction, reference, exposures[index])
             display["squared"] += shown["display_rmse"] ** 2 * prediction.size
             display["flip"] += shown["flip"] * prediction.size
     rmse = math.sqrt(squared / count)
@@ -99,6 +106,33 @@ def pooled(predictions: Sequence[np.ndarray], references: Sequence[np.ndarray]) 
         result.update(_display_pooled(display["squared"] / count, display["flip"] / count))
         result["black_references"] = sum(exposure is None for exposure in own)
     return result
+
+
+def cached_display_metrics(test: np.ndarray, reference: np.ndarray, exposure: float) -> dict[str, float]:
+    """:func:`reconstruction.metrics.display_metrics` of one pair, reused by content hash.
+
+    The key holds both images' bytes, shapes and dtypes, the exposure, the source of
+    :mod:`reconstruction.metrics` and the versions of flip-evaluator and scikit-image, so
+    any change to what is measured or how measures again. Stored as JSON under
+    ``cache_root()/display-metrics``; an unreadable entry is measured again and rewritten.
+    """
+    from reconstruction import metrics
+
+    digest = hashlib.blake2b(digest_size=32)
+    for image in (test, reference):
+        image = np.ascontiguousarray(image)
+        digest.update(f"{image.dtype.str}{image.shape}".encode())
+        digest.update(image.data)
+    key = content_key("display-metrics", digest.hexdigest(), float(exposure), source_fingerprint(metrics),
+                      version("flip-evaluator"), version("scikit-image"))
+    path = cache_root() / "display-metrics" / f"{key[:32]}.json"
+    try:
+        return {name: float(value) for name, value in json.loads(path.read_text()).items()}
+    except (OSError, ValueError, AttributeError):
+        pass
+    shown = metrics.display_metrics(test, reference, exposure)
+    atomic_write_bytes(path, json.dumps(shown).encode())
+    return shown
 
 
 def _display_pooled(mean_squared: float, flip: float) -> dict[str, float]:

@@ -175,3 +175,29 @@ def test_display_exposures_show_a_black_view_with_the_median_of_the_others():
     assert own[1] is None and shown[1] == pytest.approx(4.0) and shown[0] == pytest.approx(2.0)
     with pytest.raises(ValueError, match="all 1 references are black"):
         metrics.display_exposures([np.zeros((4, 4, 3))])
+
+
+def test_display_metrics_are_reused_by_content_and_measured_again_when_anything_changes(isolated_cache, monkeypatch):
+    from reconstruction import evaluate
+
+    rng = np.random.default_rng(3)
+    reference = rng.uniform(0.0, 0.8, (24, 20, 3))
+    test = reference + 0.05 * rng.standard_normal(reference.shape)
+    first = evaluate.cached_display_metrics(test, reference, 1.5)
+    assert first == pytest.approx(metrics.display_metrics(test, reference, 1.5))
+    measured = []
+    original = metrics.display_metrics
+    monkeypatch.setattr(metrics, "display_metrics", lambda *args: measured.append(args) or original(*args))
+    assert evaluate.cached_display_metrics(test.copy(), reference, 1.5) == first  # same bytes: reused
+    assert measured == []
+    changed = test.copy()
+    changed[3, 4, 1] += 1e-9
+    for args in ((changed, reference, 1.5), (test, reference, 1.25), (test.astype(np.float32), reference, 1.5)):
+        evaluate.cached_display_metrics(*args)
+    assert len(measured) == 3
+    entries = sorted((isolated_cache / "display-metrics").glob("*.json"))
+    assert len(entries) == 4
+    for entry in entries:
+        entry.write_text("[1, 2")  # a torn or foreign entry is measured again and rewritten
+    assert evaluate.cached_display_metrics(test, reference, 1.5) == first and len(measured) == 4
+    assert evaluate.cached_display_metrics(test, reference, 1.5) == first and len(measured) == 4

@@ -161,7 +161,13 @@ superres_crops_per_image = 2
 def test_generate_end_to_end_and_reuse(tmp_path, monkeypatch, shared_scenes):
     pytest.importorskip("mitsuba")
     pytest.importorskip("pyoidn")
+    from reconstruction import data, evaluate
+
     monkeypatch.setenv("KDTRACE_CACHE", str(tmp_path / "cache"))
+    # The plumbing, not the numbers: two small training photos and one test photo (the
+    # training set's retina alone is 2 megapixels, whose FLIP and SSIM took two thirds of this test).
+    monkeypatch.setattr(data, "TRAIN_PHOTOS", ("astronaut", "coffee"))
+    monkeypatch.setattr(evaluate, "TEST_PHOTOS", ("motorcycle_left",))
     (tmp_path / "tiny.toml").write_text(TINY)
     config = load_config(tmp_path / "tiny.toml")
     metrics = rt.generate(config, "tiny", tmp_path / "out", progress=False)
