@@ -3,6 +3,8 @@ committed model stores kept out of reach of tests that train."""
 
 from __future__ import annotations
 
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -11,6 +13,28 @@ import pytest
 from kdtrace.oracle import intersect_brute_force
 from kdtrace.rays import camera_rays
 from kdtrace.scenes import SHARED_SCENES_DIRECTORY
+
+#: A session of at least this many tests on a cold numba cache compiles the ray-query kernels
+#: in a second process (:mod:`kdtrace.precompile`) while its first tests compile the path tracer.
+PRECOMPILE_MIN_TESTS = 100
+_PRECOMPILE = pytest.StashKey[subprocess.Popen]()
+
+
+def pytest_collection_finish(session: pytest.Session) -> None:
+    """Start :mod:`kdtrace.precompile` in the background for a large session on a cold cache."""
+    from kdtrace import precompile
+
+    if len(session.items) >= PRECOMPILE_MIN_TESTS and precompile.cache_is_cold():
+        session.config.stash[_PRECOMPILE] = subprocess.Popen(
+            [sys.executable, "-m", "kdtrace.precompile"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+
+
+def pytest_sessionfinish(session: pytest.Session) -> None:
+    """Stop the precompiling process if it is still running (numba writes its cache atomically)."""
+    process = session.config.stash.get(_PRECOMPILE, None)
+    if process is not None and process.poll() is None:
+        process.terminate()
+        process.wait(timeout=60)
 
 
 def _private_store(factory: pytest.TempPathFactory):
