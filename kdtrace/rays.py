@@ -153,7 +153,7 @@ def _unit_vectors(rng: np.random.Generator, n: int) -> np.ndarray:
 
 def _surface_points(scene: Scene, tris: np.ndarray, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
     """Area-weighted uniform points on the triangles ``tris`` (float64 (N, 3)) and the triangle of each."""
-    areas = scene.triangle_areas()[tris]
+    areas = scene.triangle_areas(tris)
     chosen = tris[rng.choice(len(tris), size=n, p=areas / areas.sum())]
     corners = scene.vertices.astype(np.float64)[scene.triangles[chosen]]
     r1 = np.sqrt(rng.random(n))

@@ -179,7 +179,7 @@ def _emitters(scene: Scene) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Power-weighted emitter triangles: (indices, CDF, per-triangle selection pdf / area)."""
     tri_emit_pdf = np.zeros(len(scene.triangles))
     candidates = scene.emitter_triangles
-    areas = scene.triangle_areas()[candidates]
+    areas = scene.triangle_areas(candidates)  # not every triangle's: this runs before every render
     emission = np.array([m.emission for m in scene.materials])[scene.material_ids[candidates]]
     power = areas * emission.mean(axis=1)
     keep = power > 0.0

@@ -176,9 +176,10 @@ class Scene:
         """Axis-aligned bounding box (lower, upper corner), float64."""
         return self.vertices.min(0).astype(np.float64), self.vertices.max(0).astype(np.float64)
 
-    def triangle_areas(self) -> np.ndarray:
-        """Area of every triangle in squared scene units, computed in float64."""
-        corners = self.vertices.astype(np.float64)[self.triangles]
+    def triangle_areas(self, indices: np.ndarray | None = None) -> np.ndarray:
+        """Area of every triangle (or of the triangles ``indices``) in squared scene units, in float64."""
+        triangles = self.triangles if indices is None else self.triangles[indices]
+        corners = self.vertices.astype(np.float64)[triangles]
         cross = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
         return 0.5 * np.linalg.norm(cross, axis=1)
 

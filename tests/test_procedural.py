@@ -49,6 +49,8 @@ def test_slivers_reach_the_requested_aspect_ratio():
     height = 2.0 * scene.triangle_areas() / longest
     aspect = longest / np.maximum(height, 1e-300)
     assert aspect.max() > 1e5 and aspect.min() >= 0.5
+    some = np.array([1999, 0, 7, 7])
+    assert np.array_equal(scene.triangle_areas(some), scene.triangle_areas()[some])  # only those triangles
 
 
 def test_coplanar_stack_is_flat_with_exact_duplicates():
