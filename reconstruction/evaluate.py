@@ -29,6 +29,7 @@ Markdown and CSV, each atomically.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import io
 import json
@@ -108,6 +109,15 @@ def pooled(predictions: Sequence[np.ndarray], references: Sequence[np.ndarray]) 
     return result
 
 
+@functools.cache
+def _display_metrics_code() -> tuple[str, str, str]:
+    """What the display metrics' values depend on besides the images: the source of
+    :mod:`reconstruction.metrics` and the versions of flip-evaluator and scikit-image (read once)."""
+    from reconstruction import metrics
+
+    return source_fingerprint(metrics), version("flip-evaluator"), version("scikit-image")
+
+
 def cached_display_metrics(test: np.ndarray, reference: np.ndarray, exposure: float) -> dict[str, float]:
     """:func:`reconstruction.metrics.display_metrics` of one pair, reused by content hash.
 
@@ -123,8 +133,7 @@ def cached_display_metrics(test: np.ndarray, reference: np.ndarray, exposure: fl
         image = np.ascontiguousarray(image)
         digest.update(f"{image.dtype.str}{image.shape}".encode())
         digest.update(image.data)
-    key = content_key("display-metrics", digest.hexdigest(), float(exposure), source_fingerprint(metrics),
-                      version("flip-evaluator"), version("scikit-image"))
+    key = content_key("display-metrics", digest.hexdigest(), float(exposure), _display_metrics_code())
     path = cache_root() / "display-metrics" / f"{key[:32]}.json"
     try:
         return {name: float(value) for name, value in json.loads(path.read_text()).items()}

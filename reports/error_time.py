@@ -416,9 +416,7 @@ def measure_scene(name: str, config: Config, profile_name: str, models: Reconstr
 
 def blend_record(weights) -> dict[str, Any]:
     """A row's record of the fitted blend weights: ``spp``, ``weights``, ``views``, ``by_space``, ``limited_by``."""
-    return {"spp": list(weights.spp), "weights": list(weights.weights), "views": weights.views,
-            "by_space": {space: list(bounds) for space, bounds in weights.by_space.items()},
-            "limited_by": [weights.limiting_space(spp) for spp in weights.spp]}
+    return {**dataclasses.asdict(weights), "limited_by": [weights.limiting_space(spp) for spp in weights.spp]}
 
 
 #: Reconstruction profile fields the sweep's and §6.4's rows do not depend on: the datasets'

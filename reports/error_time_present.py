@@ -132,13 +132,13 @@ def scene_markdown(row: dict, recon: ReconstructionProfile) -> str:
     if "weight" in points:
         blended = points[points["method"] == "kdtrace+denoiser-blend"].sort_values("spp")
         fitted = row.get("blend", {})
-        limits = dict(zip(fitted.get("spp", []), zip(fitted.get("weights", []), fitted.get("limited_by", []),
-                                                        strict=True), strict=True))
+        validated = dict(zip(fitted.get("spp", []), fitted.get("weights", []), strict=True))
+        limited_by = dict(zip(fitted.get("spp", []), fitted.get("limited_by", []), strict=True))
 
         def limit(spp: int, weight: float) -> str:
-            if spp not in limits:
+            if spp not in validated:
                 return ""
-            return " (frame cap)" if weight < limits[spp][0] else f" ({limits[spp][1]})"
+            return " (frame cap)" if weight < validated[spp] else f" ({limited_by[spp]})"
 
         lines += ["Blend weights of the denoiser, min(w(spp), the frame's cap); w(spp) is fitted on the validation "
                   "views as the smallest of its linear, display and FLIP bounds (what set the weight in brackets): "
