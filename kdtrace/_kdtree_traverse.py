@@ -164,12 +164,6 @@ def intersect_triangle_watertight(tri, corners, okx, oky, okz, kx, ky, kz, sx, s
         corners[tri, kx], corners[tri, ky], corners[tri, kz], corners[tri, 3 + kx], corners[tri, 3 + ky],
         corners[tri, 3 + kz], corners[tri, 6 + kx], corners[tri, 6 + ky], corners[tri, 6 + kz],
         okx, oky, okz, sx, sy, sz, tmin, tmax)
-    return watertight_hit(hit, t_scaled, det, w1, w2, tmin, tmax)
-
-
-@njit(cache=True, inline="always")
-def watertight_hit(hit, t_scaled, det, w1, w2, tmin, tmax):
-    """``(t, u, v)`` of a :func:`watertight_decision`, t = inf on a miss."""
     if not hit:
         return np.inf, 0.0, 0.0
     # The oracle's divisions (1 / det overflows for a subnormal det), and t in (tmin, tmax) once
@@ -258,26 +252,6 @@ def span_hits(span_corners, first, count, okx, oky, okz, kx, ky, kz, sx, sy, sz,
             span_corners[c + aky + k], span_corners[c + akz + k], okx, oky, okz, sx, sy, sz, tmin, tmax)[0]
         mask |= np.uint64(hit) << min(k, last_bit)
     return mask
-
-
-@njit(cache=True, inline="always")
-def intersect_span_watertight(span_corners, first, count, k, okx, oky, okz, kx, ky, kz, sx, sy, sz, tmin, tmax):
-    """:func:`intersect_triangle_watertight` of reference ``first + k`` of the span ``first ..
-    first + count - 1``, its corners read from ``span_corners`` (the block :func:`span_hits` has
-    just read, so in the cache) instead of from ``corners`` by triangle (a cache line elsewhere):
-    the same float32 values, so the same ``(t, u, v)``, bit for bit."""
-    n = np.uint64(count)
-    at = np.uint64(9) * np.uint64(first) + np.uint64(k)
-    akx = at + np.uint64(kx) * n
-    aky = at + np.uint64(ky) * n
-    akz = at + np.uint64(kz) * n
-    b = np.uint64(3) * n
-    c = np.uint64(6) * n
-    hit, t_scaled, det, w1, w2 = watertight_decision(
-        span_corners[akx], span_corners[aky], span_corners[akz], span_corners[b + akx], span_corners[b + aky],
-        span_corners[b + akz], span_corners[c + akx], span_corners[c + aky], span_corners[c + akz],
-        okx, oky, okz, sx, sy, sz, tmin, tmax)
-    return watertight_hit(hit, t_scaled, det, w1, w2, tmin, tmax)
 
 
 @njit(cache=True, inline="always")
@@ -423,8 +397,6 @@ def trace_ray(
         visited += 1
         word, axis, first, count = decode_node(nodes, node, spans)
         if count > 0:
-            span_first = first
-            span_count = count
             if vector_spans:
                 may_hit = span_hits(span_corners, first, count, okx, oky, okz, kx, ky, kz, sx, sy, sz, tmin, best_t)
                 if may_hit == 0:
@@ -441,18 +413,12 @@ def trace_ray(
                     first += lead
                     count = end - lead
             for k in range(first, first + count):
+                tri = refs[np.uint64(k)]
                 tests += 1
-                # From the span's block, which span_hits has just brought into the cache: reading the
-                # corners by triangle cost a cache miss per leaf with a candidate on large trees.
-                if vector_spans:
-                    t, u, v = intersect_span_watertight(span_corners, span_first, span_count, k - span_first, okx, oky,
-                                                        okz, kx, ky, kz, sx, sy, sz, tmin, best_t)
-                else:
-                    t, u, v = intersect_tree_triangle(watertight, refs[np.uint64(k)], corners, ox, oy, oz, dx, dy, dz,
-                                                      setup, tmin, best_t)
+                t, u, v = intersect_tree_triangle(watertight, tri, corners, ox, oy, oz, dx, dy, dz, setup, tmin, best_t)
                 if t < best_t:
                     best_t = t
-                    best_tri = refs[np.uint64(k)]
+                    best_tri = tri
                     best_u = u
                     best_v = v
                     if any_hit:

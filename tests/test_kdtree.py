@@ -13,7 +13,6 @@ from kdtrace._kdtree_layout import HAS_TRIANGLES, LINE_NODES
 from kdtrace._kdtree_traverse import (
     SPAN_LANES,
     SPAN_MASK_BITS,
-    intersect_span_watertight,
     intersect_triangle_watertight,
     span_hits,
     triangle_test_setup,
@@ -419,44 +418,6 @@ def _hit_one_by_one(corners, origin, direction, tmax):
         t, _, _ = intersect_triangle_watertight(tri, corners, okx, oky, okz, kx, ky, kz, sx, sy, sz, 0.0, tmax)
         hit[tri] = t < np.inf
     return hit
-
-
-@njit(error_model="numpy")
-def _span_tests_against_triangle_tests(corners, blocks, first, origin, direction, tmax):
-    """Per triangle: whether :func:`intersect_span_watertight` on the span's block gives the same
-    ``(t, u, v)`` as :func:`intersect_triangle_watertight` on ``corners``, bit for bit; and whether it hit."""
-    okx, oky, okz, kx, ky, kz, sx, sy, sz = triangle_test_setup(True, origin[0], origin[1], origin[2], direction[0],
-                                                                direction[1], direction[2])
-    count = corners.shape[0]
-    same = np.zeros(count, np.bool_)
-    hit = np.zeros(count, np.bool_)
-    for k in range(count):
-        expected = intersect_triangle_watertight(k, corners, okx, oky, okz, kx, ky, kz, sx, sy, sz, 0.0, tmax)
-        got = intersect_span_watertight(blocks, first, count, k, okx, oky, okz, kx, ky, kz, sx, sy, sz, 0.0, tmax)
-        same[k] = got[0] == expected[0] and got[1] == expected[1] and got[2] == expected[2]
-        hit[k] = expected[0] < np.inf
-    return same, hit
-
-
-def test_a_span_s_corners_give_the_triangle_test_s_answer_bit_for_bit():
-    """The one-by-one test after the span mask reads a reference's corners from its span's block
-    (9 runs of ``count``, preceded by other spans) instead of from ``corners`` by triangle: the same
-    t, u and v for every reference, hit or missed."""
-    rng = np.random.default_rng(11)
-    hits = 0
-    for _ in range(500):
-        count = int(rng.integers(1, 20))
-        first = int(rng.integers(0, 5))
-        corners = rng.uniform(-1.0, 1.0, (count, 9)).astype(np.float32)
-        before = rng.uniform(-1.0, 1.0, 9 * first).astype(np.float32)
-        blocks = np.concatenate([before, corners.T.reshape(-1), np.zeros(SPAN_LANES, np.float32)])
-        origin = rng.uniform(-1.0, 1.0, 3) + np.array([0.0, 0.0, -3.0])
-        direction = rng.normal(size=3) * 0.3 + np.array([0.0, 0.0, 1.0])
-        same, hit = _span_tests_against_triangle_tests(corners, blocks, first, origin, direction / np.linalg.norm(direction),
-                                                       10.0)
-        assert same.all()
-        hits += int(hit.sum())
-    assert hits > 100  # hits were compared, not only misses
 
 
 def test_span_mask_is_the_one_by_one_answer_for_the_span_alone():
